@@ -1,0 +1,1 @@
+"""ExClone's pure core: numpy/scipy functions on arrays, no bpy. One module per step."""

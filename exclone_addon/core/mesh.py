@@ -1,0 +1,154 @@
+"""Polygon meshes as plain arrays: OBJ I/O, triangulation, normals, parts.
+
+A mesh is (vertices, loop_totals, loop_vertices), Blender's own layout: polygon p uses
+loop_vertices[start[p]:start[p] + loop_totals[p]]. Everything downstream works on the triangles
+`triangulate` makes, and results go back in the original vertex order (triangulation never adds
+or reorders vertices).
+"""
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from .errors import ExCloneError
+
+
+class MeshError(ExCloneError):
+    """Input that is not a usable mesh."""
+
+
+@dataclass
+class PolyMesh:
+    vertices: np.ndarray        # (n, 3) float64
+    loop_totals: np.ndarray     # (P,) int: corners per polygon
+    loop_vertices: np.ndarray   # (L,) int: vertex index per corner
+
+    @classmethod
+    def from_faces(cls, vertices, faces):
+        """faces: a (P, k) array or a list of vertex-index sequences."""
+        faces = [np.asarray(f, dtype=np.int64) for f in faces]
+        totals = np.array([len(f) for f in faces], dtype=np.int64)
+        loops = np.concatenate(faces) if faces else np.zeros(0, np.int64)
+        return cls(np.asarray(vertices, dtype=np.float64), totals, loops)
+
+    def triangles(self):
+        return triangulate(self.loop_totals, self.loop_vertices)
+
+    def faces(self):
+        return np.split(self.loop_vertices, np.cumsum(self.loop_totals)[:-1])
+
+
+def triangulate(loop_totals, loop_vertices):
+    """Fan-triangulate every polygon (quads and convex n-gons); returns (T, 3) int64."""
+    totals = np.asarray(loop_totals, dtype=np.int64)
+    loops = np.asarray(loop_vertices, dtype=np.int64)
+    if np.any(totals < 3):
+        raise MeshError("mesh has a polygon with fewer than 3 corners")
+    starts = np.concatenate([[0], np.cumsum(totals)[:-1]])
+    fans = totals - 2
+    poly = np.repeat(np.arange(len(totals)), fans)
+    k = np.arange(fans.sum()) - np.repeat(np.cumsum(fans) - fans, fans)
+    first = starts[poly]
+    return np.stack([loops[first], loops[first + k + 1], loops[first + k + 2]], axis=1)
+
+
+def read_obj(path):
+    """Vertices and polygons of a Wavefront OBJ (all groups and objects merged, file order kept)."""
+    vertices, faces = [], []
+    try:
+        with open(path, "r", encoding="utf-8", errors="replace") as fh:
+            for line in fh:
+                if line.startswith("v "):
+                    vertices.append(line.split()[1:4])
+                elif line.startswith("f "):
+                    faces.append([int(tok.split("/")[0]) for tok in line.split()[1:]])
+    except OSError as exc:
+        raise MeshError(f"cannot read {path}: {exc.strerror}") from exc
+    try:
+        verts = np.array(vertices, dtype=np.float64).reshape(-1, 3)
+    except ValueError as exc:
+        raise MeshError(f"{path}: malformed vertex line") from exc
+    n = len(verts)
+    fixed = []
+    for f in faces:
+        idx = np.array(f, dtype=np.int64)
+        idx = np.where(idx < 0, n + idx, idx - 1)  # OBJ indices are 1-based; negatives count back
+        if idx.size and (idx.min() < 0 or idx.max() >= n):
+            raise MeshError(f"{path}: a face refers to a vertex that does not exist")
+        fixed.append(idx)
+    return PolyMesh.from_faces(verts, fixed)
+
+
+def write_obj(path, mesh, header=None):
+    with open(path, "w", encoding="utf-8") as fh:
+        if header:
+            fh.write("".join(f"# {line}\n" for line in header.splitlines()))
+        np.savetxt(fh, mesh.vertices, fmt="v %.7g %.7g %.7g")
+        for face in mesh.faces():
+            fh.write("f " + " ".join(str(i + 1) for i in face) + "\n")
+
+
+def triangle_normals(vertices, triangles, normalize=True):
+    """Per-triangle normals; the unnormalised ones have length 2 * area. Degenerate ones stay 0."""
+    v = vertices[triangles]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    if normalize:
+        length = np.linalg.norm(n, axis=1, keepdims=True)
+        n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    return n
+
+
+def vertex_normals(vertices, triangles):
+    """Area-weighted vertex normals; vertices on no (non-degenerate) triangle get 0."""
+    fn = triangle_normals(vertices, triangles, normalize=False)
+    n = np.zeros_like(vertices)
+    for k in range(3):
+        np.add.at(n, triangles[:, k], fn)
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+
+
+def triangle_areas(vertices, triangles):
+    return 0.5 * np.linalg.norm(triangle_normals(vertices, triangles, normalize=False), axis=1)
+
+
+def vertex_adjacency(n_vertices, triangles):
+    """Symmetric sparse vertex-vertex adjacency (edges of the triangles)."""
+    i = triangles[:, [0, 1, 2, 1, 2, 0]].ravel()
+    j = triangles[:, [1, 2, 0, 0, 1, 2]].ravel()
+    return sp.csr_matrix((np.ones(len(i)), (i, j)), shape=(n_vertices, n_vertices))
+
+
+def vertex_parts(n_vertices, triangles):
+    """Connected part label of every vertex (an unreferenced vertex is a part of its own)."""
+    _, labels = connected_components(vertex_adjacency(n_vertices, triangles), directed=False)
+    return labels
+
+
+def referenced_vertices(n_vertices, triangles):
+    used = np.zeros(n_vertices, dtype=bool)
+    used[triangles.ravel()] = True
+    return used
+
+
+def valid_triangles(vertices, triangles, rel_eps=1e-12):
+    """Triangles with three distinct corners and a non-negligible area."""
+    distinct = (triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2]) \
+        & (triangles[:, 0] != triangles[:, 2])
+    scale = np.ptp(vertices, axis=0).max() if len(vertices) else 0.0
+    area = triangle_areas(vertices, triangles)
+    return distinct & (area > rel_eps * max(scale, 1e-30) ** 2)
+
+
+def check_mesh(vertices, triangles, what="mesh"):
+    """Raise MeshError with a user-facing message for meshes the pipeline cannot use."""
+    if len(vertices) == 0 or len(triangles) == 0:
+        raise MeshError(f"{what} is empty (no vertices or no faces)")
+    if not np.all(np.isfinite(vertices)):
+        raise MeshError(f"{what} has vertices with NaN or infinite coordinates")
+    if not valid_triangles(vertices, triangles).any():
+        raise MeshError(f"{what} is degenerate: every face has zero area")
+    extent = np.ptp(vertices[np.unique(triangles)], axis=0)
+    if np.sort(extent)[1] <= 1e-9 * extent.max():
+        raise MeshError(f"{what} is degenerate: it has no extent in two directions")
