@@ -1,0 +1,27 @@
+"""Clone facial expressions onto a head from the command line (see exclone_addon/batch.py).
+
+    python scripts/batch_clone.py [--source S] [--target T] [--out OUT.blend] [--export-dir DIR]
+        [--report R.json] [--landmarks L.json] [--shapes NAME,NAME...] [--preview P.png]
+    blender -b --python scripts/batch_clone.py -- ARGS
+
+With no arguments: the bundled ICT-FaceKit ARKit library onto the bundled demo head, written to
+out/demo_head_exclone.blend, .json and .png.
+"""
+import sys
+from pathlib import Path
+
+import bpy
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from exclone_addon.batch import main  # noqa: E402  (needs the repository on sys.path)
+
+
+def script_arguments():
+    if "--" in sys.argv:
+        return sys.argv[sys.argv.index("--") + 1:]
+    # Inside the Blender executable, sys.argv holds Blender's own options.
+    return [] if bpy.app.binary_path else sys.argv[1:]
+
+
+if __name__ == "__main__":
+    sys.exit(main(script_arguments()))
