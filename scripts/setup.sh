@@ -16,6 +16,13 @@ find_python() {  # $1 = minor version, e.g. 3.11; prints a python of that versio
     done
 }
 
+# This machine's pip.conf adds file:// indexes that hold only a few projects; pip warns once per other
+# project ("Location ... is ignored"). Drop just those lines.
+pip_run() {  # $1 = python, the rest = pip arguments
+    local py=$1; shift
+    "$py" -m pip --disable-pip-version-check "$@" 2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+}
+
 make_venv() {  # $1 = venv dir, $2 = python, $3 = requirements file
     local venv=$1 py=$2 req=$3 stamp="$1/.requirements.sha256"
     local want; want=$(sha256sum "$req" | cut -d' ' -f1)
@@ -25,9 +32,9 @@ make_venv() {  # $1 = venv dir, $2 = python, $3 = requirements file
     echo "setup: creating $venv from $req with $py"
     rm -rf "$venv"
     "$py" -m venv "$venv"
-    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check --upgrade pip
+    pip_run "$venv/bin/python" install --quiet --upgrade pip
     # One pip command with every pin, so that pip never upgrades numpy under bpy.
-    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check -r "$req"
+    pip_run "$venv/bin/python" install --quiet -r "$req"
     echo "$want" > "$stamp"
 }
 
@@ -48,7 +55,7 @@ MODELS=exclone_addon/models
 if [[ ! -f $MODELS/face_landmark.tflite || ! -f $MODELS/face_detection_short_range.tflite ]]; then
     mkdir -p .cache/wheels
     ls .cache/wheels/mediapipe-0.10.21-*.whl >/dev/null 2>&1 || \
-        .venv/bin/python -m pip download --quiet --disable-pip-version-check --no-deps \
+        pip_run .venv/bin/python download --quiet --no-deps \
             -d .cache/wheels mediapipe==0.10.21
     .venv/bin/python scripts/extract_models.py .cache/wheels/mediapipe-0.10.21-*.whl "$MODELS"
 fi
