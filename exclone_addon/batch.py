@@ -26,7 +26,7 @@ from .blender.operators import summary
 from .core import library
 from .core.cloning import CloneSettings, clone_expressions
 from .core.errors import ExCloneError
-from .core.mesh import PolyMesh, check_mesh, read_obj, write_obj
+from .core.mesh import MeshError, PolyMesh, check_mesh, read_obj, write_obj
 
 DEMO_HEAD = Path(__file__).resolve().parent / "data" / "demo_head.obj"
 IMPORTERS = {".fbx": "fbx", ".glb": "gltf", ".gltf": "gltf"}
@@ -141,7 +141,11 @@ def _existing(path, role):
 
 
 def _checked(mesh, what):
-    check_mesh(mesh.vertices, mesh.triangles(), what=what)
+    try:
+        triangles = mesh.triangles()
+    except MeshError as exc:
+        raise MeshError(f"{what}: {exc}") from exc
+    check_mesh(mesh.vertices, triangles, what=what)
     return mesh
 
 

@@ -1,0 +1,305 @@
+"""scripts/batch_clone.py: bad input fails with one clear line and touches nothing; a full run
+writes the .blend, the report, the OBJs and the contact sheet.
+
+The CLI runs as a subprocess of this Python (the bpy module), exactly as a user runs it.
+"""
+import hashlib
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import bpy
+import cv2
+import numpy as np
+import pytest
+
+from exclone_addon import batch
+from exclone_addon.blender import mesh_io
+from exclone_addon.core.errors import ExCloneError
+from exclone_addon.core.library import load_library
+from exclone_addon.core.mesh import PolyMesh, read_obj, write_obj
+
+REPO = Path(__file__).resolve().parent.parent
+SCRIPT = REPO / "scripts" / "batch_clone.py"
+DATA = REPO / "exclone_addon" / "data"
+DEMO_HEAD = DATA / "demo_head.obj"
+
+
+def run_cli(*args, cwd):
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")  # nothing may be written into the repo
+    return subprocess.run([sys.executable, str(SCRIPT), *map(str, args)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=900)
+
+
+def hashes(*roots):
+    """sha256 of every file under the given files/folders."""
+    files = [p for root in roots for p in ([root] if root.is_file() else sorted(root.rglob("*")))
+             if p.is_file()]
+    return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in files}
+
+
+def save_blend(path, objects):
+    """Save a .blend holding the given (name, PolyMesh or None, shape keys dict) objects."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    for name, mesh, keys in objects:
+        if mesh is None:
+            bpy.context.scene.collection.objects.link(bpy.data.objects.new(name, None))
+            continue
+        obj = mesh_io.object_from_mesh(name, mesh)
+        if keys:
+            mesh_io.write_shape_keys(obj, list(keys), np.stack(list(keys.values())))
+    bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+
+
+@pytest.fixture
+def head():
+    return read_obj(DEMO_HEAD)
+
+
+@pytest.fixture
+def inputs(tmp_path, head):
+    """Input files of every kind in tmp_path/in (the CLI gets copies, never the repo's data)."""
+    folder = tmp_path / "in"
+    folder.mkdir()
+    (folder / "head.obj").write_bytes(DEMO_HEAD.read_bytes())
+    lift = np.zeros_like(head.vertices)
+    lift[:, 1] = 0.01
+    save_blend(folder / "keyed.blend", [("plain", head, {}), ("keyed", head, {"lift": lift})])
+    save_blend(folder / "no_keys.blend", [("head", head, {})])
+    save_blend(folder / "no_mesh.blend", [("Empty", None, {})])
+    (folder / "text.blend").write_text("not a blend file\n")
+    (folder / "empty.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")  # vertices, no faces
+    (folder / "dot.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2\n")  # a 2-corner face
+    line = np.array([[0, 0, 0], [1, 0, 0], [2, 0, 0], [3, 0, 0]], dtype=float)
+    write_obj(folder / "flat.obj", PolyMesh.from_faces(line, [[0, 1, 2], [1, 2, 3]]))
+    mismatched = folder / "mismatched"
+    mismatched.mkdir()
+    write_obj(mismatched / "neutral.obj", head)
+    write_obj(mismatched / "jawOpen.obj", PolyMesh.from_faces(head.vertices[:100], []))
+    good = folder / "folder"
+    good.mkdir()
+    write_obj(good / "neutral.obj", head)
+    write_obj(good / "jawOpen.obj", PolyMesh(head.vertices + 0.1, head.loop_totals, head.loop_vertices))
+    (folder / "head.stl").write_text("solid head\nendsolid head\n")
+    return folder
+
+
+def landmarks_file(folder, source, target):
+    path = folder / "landmarks.json"
+    path.write_text(json.dumps({"source": source, "target": target}))
+    return path
+
+
+BAD_INPUTS = {
+    # case: (arguments relative to the inputs folder, words the one-line message must contain)
+    "missing target": (["--target", "{in}/missing.obj"], "target not found"),
+    "missing source": (["--source", "{in}/missing.blend"], "source not found"),
+    "target not a blend file": (["--target", "{in}/text.blend"], "not a readable .blend"),
+    "target has no mesh": (["--target", "{in}/no_mesh.blend"], "contains no mesh object"),
+    "target object is not a mesh": (["--target", "{in}/no_mesh.blend:Empty"],
+                                    "is not a mesh object"),
+    "target object missing": (["--target", "{in}/keyed.blend:Nope"], "no object named 'Nope'"),
+    "source without shape keys": (["--source", "{in}/no_keys.blend"],
+                                  "no mesh object with shape keys"),
+    "named source without shape keys": (["--source", "{in}/keyed.blend:plain"],
+                                        "has no shape keys"),
+    "source is an OBJ": (["--source", "{in}/head.obj"], "cannot hold shape keys"),
+    "empty target": (["--target", "{in}/empty.obj"], "is empty"),
+    "degenerate target": (["--target", "{in}/flat.obj"], "degenerate"),
+    "target with a 2-corner face": (["--target", "{in}/dot.obj"],
+                                    "dot.obj: mesh has a polygon with fewer than 3 corners"),
+    "mismatched OBJ folder": (["--source", "{in}/mismatched"], "every expression OBJ must have"),
+    "unsupported target type": (["--target", "{in}/head.stl"], "unsupported file type '.stl'"),
+    "unknown shape": (["--shapes", "jawOpen,notAShape"], "unknown expression(s) notAShape"),
+    "out overwrites the target": (["--target", "{in}/keyed.blend", "--out", "{in}/keyed.blend"],
+                                  "refusing to overwrite the input file"),
+    "export would overwrite the source": (["--source", "{in}/folder", "--export-dir", "{in}/folder"],
+                                          "refusing to overwrite the input file"),
+    "out not a blend": (["--out", "{in}/result.txt"], "--out must name a .blend file"),
+    "unknown option": (["--colour", "red"], "unrecognized arguments: --colour red"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_INPUTS))
+def test_bad_input_fails_with_one_line_and_changes_nothing(case, inputs, tmp_path):
+    arguments, expected = BAD_INPUTS[case]
+    before = hashes(inputs, DATA)
+    result = run_cli(*[a.replace("{in}", str(inputs)) for a in arguments], cwd=tmp_path)
+    assert result.returncode != 0
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1, result.stderr
+    assert lines[0].startswith("batch_clone: error: ") and expected in lines[0], lines[0]
+    assert hashes(inputs, DATA) == before
+    assert not (tmp_path / "out").exists()
+
+
+BAD_LANDMARKS = {
+    "not JSON": ("{source: [1, 2", "not valid JSON"),
+    "missing key": ({"source": [1, 2, 3, 4]}, 'must be {"source": [ids], "target": [ids]}'),
+    "different lengths": ({"source": [1, 2, 3, 4], "target": [1, 2, 3]}, "must pair up"),
+    "too few": ({"source": [1, 2, 3], "target": [1, 2, 3]}, "at least 4 are needed"),
+    "out of range": ({"source": [1, 2, 3, 4], "target": [1, 2, 3, 4244]},
+                     "target vertex id 4244 is out of range"),
+    "not ids": ({"source": [1, 2, 3, 4.5], "target": [1, 2, 3, 4]}, "must be a list of vertex ids"),
+    "repeated": ({"source": [1, 2, 3, 3], "target": [1, 2, 3, 4]}, "repeat a vertex"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_LANDMARKS))
+def test_bad_landmarks_fail_with_one_line(case, tmp_path):
+    content, expected = BAD_LANDMARKS[case]
+    path = tmp_path / "landmarks.json"
+    path.write_text(content if isinstance(content, str) else json.dumps(content))
+    before = hashes(path)
+    result = run_cli("--landmarks", path, cwd=tmp_path)
+    assert result.returncode != 0
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("batch_clone: error: "), result.stderr
+    assert expected in lines[0], lines[0]
+    assert hashes(path) == before
+
+
+# -- input readers and the OBJ export, without the engine ---------------------------------------
+
+def test_export_of_an_unmodified_obj_target_reproduces_it(tmp_path, head):
+    target = batch.load_target(str(DEMO_HEAD))
+    paths = batch.export_shapes(tmp_path, target.mesh, [], np.zeros((0, len(head.vertices), 3)))
+    exported = read_obj(paths["neutral"])
+    assert np.abs(exported.vertices - head.vertices).max() <= 1e-5
+    assert np.array_equal(exported.loop_totals, head.loop_totals)
+    assert np.array_equal(exported.loop_vertices, head.loop_vertices)
+    # The object stands upright in Blender (OBJ is Y-up) while its mesh keeps file coordinates.
+    assert tuple(target.obj.rotation_euler) == pytest.approx((np.pi / 2, 0, 0))
+
+
+def test_export_of_a_blend_target_reproduces_its_vertices_and_adds_deltas(tmp_path, head):
+    lift = np.zeros_like(head.vertices)
+    lift[:, 1] = 0.25
+    save_blend(tmp_path / "target.blend", [("other", head, {}), ("head", head, {})])
+    target = batch.load_target(f"{tmp_path / 'target.blend'}:head")
+    assert [obj.name for obj in bpy.context.scene.objects] == ["head"]
+    paths = batch.export_shapes(tmp_path / "export", target.mesh, ["jaw/Open"], lift[None])
+    assert sorted(p.name for p in paths.values()) == ["jaw_Open.obj", "neutral.obj"]
+    neutral, shape = read_obj(paths["neutral"]), read_obj(paths["jaw/Open"])
+    assert np.abs(neutral.vertices - head.vertices).max() <= 1e-5
+    assert np.abs(shape.vertices - (head.vertices + lift)).max() <= 1e-5
+    assert np.array_equal(shape.loop_vertices, head.loop_vertices)
+
+
+def test_blend_source_gives_its_shape_keys(tmp_path, head):
+    lift = np.zeros_like(head.vertices)
+    lift[:, 1] = 0.01
+    save_blend(tmp_path / "source.blend", [("a_plain", head, {}), ("keyed", head, {"lift": lift})])
+    source, description, inputs = batch.load_source(str(tmp_path / "source.blend"))
+    assert description.endswith(":keyed") and inputs == [tmp_path / "source.blend"]
+    assert source.names == ["lift"]
+    assert np.abs(source.deltas[0] - lift).max() <= 1e-6
+
+
+def test_glb_source_gives_its_shape_keys(tmp_path, head):
+    lift = np.zeros_like(head.vertices)
+    lift[:, 1] = 0.01
+    obj = mesh_io.object_from_mesh("keyed", head)
+    mesh_io.write_shape_keys(obj, ["lift", "sink"], np.stack([lift, -lift]))
+    path = tmp_path / "source.glb"
+    bpy.ops.export_scene.gltf(filepath=str(path), export_morph=True)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    source, _, _ = batch.load_source(str(path))
+    assert source.names == ["lift", "sink"]
+    # glTF is Y-up: the exporter and importer convert axes both ways (and may split vertices).
+    assert np.abs(source.deltas[0] - [0, 0.01, 0]).max() <= 1e-6
+
+
+def test_shapes_and_landmarks_are_checked_before_cloning(tmp_path):
+    path = landmarks_file(tmp_path, [0, 1, 2, 3], [10, 11, 12, 13])
+    assert batch.read_landmarks(path, 100, 20)["target"].tolist() == [10, 11, 12, 13]
+    with pytest.raises(ExCloneError, match="out of range"):
+        batch.read_landmarks(path, 100, 12)
+
+
+# -- full runs: need the cloning engine ----------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory):
+    """The CLI with no arguments at all, from an empty working directory."""
+    cwd = tmp_path_factory.mktemp("default_run")
+    before = hashes(DATA)
+    result = run_cli(cwd=cwd)
+    assert hashes(DATA) == before, "the run modified the bundled data"
+    return cwd, result
+
+
+def test_default_run_writes_blend_report_and_preview(default_run, head):
+    cwd, result = default_run
+    assert result.returncode == 0, result.stderr
+    out = cwd / "out"
+    assert sorted(p.name for p in out.iterdir()) == [
+        "demo_head_exclone.blend", "demo_head_exclone.json", "demo_head_exclone.png"]
+    for name in ("demo_head_exclone.blend", "demo_head_exclone.json", "demo_head_exclone.png"):
+        assert name in result.stdout
+    assert "shape keys added" in result.stdout.splitlines()[-1]
+
+
+def test_default_run_blend_has_one_shape_key_per_library_expression(default_run, head):
+    cwd, _ = default_run
+    with bpy.data.libraries.load(str(cwd / "out" / "demo_head_exclone.blend")) as (src, dst):
+        assert src.objects == ["demo_head"]
+        dst.objects = src.objects
+    obj = dst.objects[0]
+    names, deltas = mesh_io.shape_keys_from_object(obj)
+    assert names == load_library().names
+    assert np.abs(mesh_io.mesh_from_object(obj).vertices - head.vertices).max() <= 1e-5
+    assert tuple(obj.rotation_euler) == pytest.approx((np.pi / 2, 0, 0))
+    movement = np.linalg.norm(deltas, axis=2).max(axis=1)
+    assert movement[names.index("jawOpen")] > 0.01 * np.ptp(head.vertices, axis=0).max()
+
+
+def test_default_run_report(default_run):
+    cwd, _ = default_run
+    report = json.loads((cwd / "out" / "demo_head_exclone.json").read_text())
+    assert report["counts"]["target_vertices"] == 4244
+    assert report["counts"]["expressions"] == report["counts"]["shape_keys_added"] == 57
+    assert report["timings"]["total"] >= report["timings"]["clone_total"] > 0
+    assert report["quality"]
+    marks = report["landmarks"]
+    assert len(marks["source"]) == len(marks["target"]) == len(marks["names"]) >= 4
+    assert report["versions"]["blender"] == bpy.app.version_string
+
+
+def test_default_run_preview_shows_rendered_tiles(default_run):
+    cwd, _ = default_run
+    sheet = cv2.imread(str(cwd / "out" / "demo_head_exclone.png"))
+    assert sheet is not None and sheet.shape == (2 * 320, 4 * 320, 3)
+    for row in range(2):
+        for col in range(4):
+            tile = sheet[row * 320:(row + 1) * 320, col * 320:(col + 1) * 320]
+            assert tile[40:].std() > 10, f"tile {row},{col} is blank"
+
+
+def test_run_with_the_reports_landmarks_shapes_and_export(default_run, tmp_path, head):
+    """Feeding the landmarks of the automatic run back in (the report lists them in the
+    --landmarks form) gives the same landmarks; exported OBJs match the target and the keys."""
+    cwd, _ = default_run
+    automatic = json.loads((cwd / "out" / "demo_head_exclone.json").read_text())["landmarks"]
+    landmarks = landmarks_file(tmp_path, automatic["source"], automatic["target"])
+    result = run_cli("--shapes", "jawOpen,eyeBlink_L", "--landmarks", landmarks,
+                     "--export-dir", tmp_path / "objs", "--out", tmp_path / "r.blend",
+                     cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["landmarks"]["source"] == automatic["source"]
+    assert report["landmarks"]["target"] == automatic["target"]
+    assert report["counts"]["expressions"] == 2
+    assert sorted(p.name for p in (tmp_path / "objs").iterdir()) == [
+        "eyeBlink_L.obj", "jawOpen.obj", "neutral.obj"]
+    neutral = read_obj(tmp_path / "objs" / "neutral.obj")
+    assert np.abs(neutral.vertices - head.vertices).max() <= 1e-5
+    with bpy.data.libraries.load(str(tmp_path / "r.blend")) as (src, dst):
+        dst.objects = src.objects
+    names, deltas = mesh_io.shape_keys_from_object(dst.objects[0])
+    assert names == ["jawOpen", "eyeBlink_L"]
+    jaw = read_obj(tmp_path / "objs" / "jawOpen.obj")
+    assert np.abs(jaw.vertices - (head.vertices + deltas[0])).max() <= 1e-5
