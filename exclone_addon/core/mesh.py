@@ -126,6 +126,17 @@ def vertex_parts(n_vertices, triangles):
     return labels
 
 
+def boundary_edges(triangles):
+    """Edges (k, 2) used by exactly one triangle: the open borders."""
+    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, counts = np.unique(edges, axis=0, return_counts=True)
+    return unique[counts == 1]
+
+
+def boundary_vertices(triangles):
+    return np.unique(boundary_edges(triangles))
+
+
 def referenced_vertices(n_vertices, triangles):
     used = np.zeros(n_vertices, dtype=bool)
     used[triangles.ravel()] = True

@@ -1,0 +1,155 @@
+"""Deformation gradients of triangle meshes as sparse linear operators.
+
+For triangle j with corners (v1, v2, v3) deformed to (v1', v2', v3'), the gradient Q_j solves
+Q_j V_j = V_j'. Two forms (METHOD.md, part 1):
+
+- reduced (the thesis' contribution, the default): V = [v2-v1, v3-v1] (3x2), V = Q R (thin QR),
+  V^+ = R^-1 Q^T, Q_j = [v2'-v1', v3'-v1'] V^+. Linear in the three deformed vertices only, so the
+  unknowns are the vertices alone. Q_j ignores the normal direction (it maps it to 0).
+- augmented (Sumner & Popovic 2004): a 4th vertex v4 = v1 + n / sqrt(|n|) per triangle makes V
+  3x3 and invertible; the 4th vertices become extra unknowns (columns n_vertices + j).
+
+Layout: an operator G maps unknowns X (N, 3) to G @ X (3T, 3) with (G @ X)[3j + c, r] = Q_j[r, c],
+i.e. the gradients stacked transposed, one 3x3 block per triangle; the same G serves x, y and z.
+"""
+import numpy as np
+import scipy.sparse as sp
+
+REDUCED = "reduced"
+AUGMENTED = "augmented"
+FORMULATIONS = (REDUCED, AUGMENTED)
+
+# Corner weights of the edge matrices: E = corners^T @ B, i.e. edges v2-v1, v3-v1 (and v4-v1).
+_EDGES_3 = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
+_EDGES_4 = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+
+
+def fourth_vertices(vertices, triangles):
+    """Sumner's 4th vertex per triangle: v1 + n / sqrt(|n|), n the unnormalised normal."""
+    v = vertices[triangles]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    return v[:, 0] + np.divide(n, np.sqrt(length), out=np.zeros_like(n), where=length > 0)
+
+
+def edge_pseudo_inverses(vertices, triangles, rel_eps=1e-10):
+    """V^+ = R^-1 Q^T of every triangle's 3x2 edge matrix, (T, 2, 3); zeros for degenerate ones.
+
+    Returns (pinv, ok) where ok marks the triangles whose QR is well conditioned.
+    """
+    v = vertices[triangles]
+    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]], axis=2)    # (T, 3, 2)
+    q, r = np.linalg.qr(edges)                                          # (T,3,2), (T,2,2)
+    scale = np.abs(r[:, 0, 0]) + np.abs(r[:, 1, 1]) + np.abs(r[:, 0, 1])
+    ok = (np.abs(r[:, 0, 0]) > rel_eps * scale) & (np.abs(r[:, 1, 1]) > rel_eps * scale) & (scale > 0)
+    r_safe = np.where(ok[:, None, None], r, np.eye(2))
+    pinv = np.linalg.solve(r_safe, np.swapaxes(q, 1, 2))                # R^-1 Q^T
+    pinv[~ok] = 0.0
+    return pinv, ok
+
+
+def augmented_inverses(vertices, triangles, rel_eps=1e-10):
+    """V^-1 of every triangle's 3x3 edge matrix with the 4th vertex, (T, 3, 3); zeros if degenerate."""
+    v = vertices[triangles]
+    v4 = fourth_vertices(vertices, triangles)
+    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], v4 - v[:, 0]], axis=2)
+    det = np.linalg.det(edges)
+    scale = np.linalg.norm(edges, axis=(1, 2)) ** 3
+    ok = np.abs(det) > rel_eps * np.maximum(scale, 1e-300)
+    inv = np.linalg.inv(np.where(ok[:, None, None], edges, np.eye(3)))
+    inv[~ok] = 0.0
+    return inv, ok
+
+
+def gradient_operator(vertices, triangles, formulation=REDUCED):
+    """Sparse G (3T x N) of the rest shape `vertices`; N = n (reduced) or n + T (augmented).
+
+    Returns (G, ok): ok marks non-degenerate triangles (degenerate ones get all-zero rows, so they
+    neither pull nor produce NaNs).
+    """
+    n, t = len(vertices), len(triangles)
+    if formulation == REDUCED:
+        pinv, ok = edge_pseudo_inverses(vertices, triangles)
+        coeff = _EDGES_3 @ pinv                                        # (T, 3 corners, 3 columns)
+        cols = triangles
+        n_unknowns = n
+    elif formulation == AUGMENTED:
+        inv, ok = augmented_inverses(vertices, triangles)
+        coeff = _EDGES_4 @ inv                                         # (T, 4 corners, 3 columns)
+        cols = np.concatenate([triangles, n + np.arange(t)[:, None]], axis=1)
+        n_unknowns = n + t
+    else:
+        raise ValueError(f"unknown formulation {formulation!r}; use one of {FORMULATIONS}")
+    corners = cols.shape[1]
+    rows = 3 * np.arange(t)[:, None, None] + np.arange(3)[None, None, :]   # (T, 1, 3)
+    rows = np.broadcast_to(rows, (t, corners, 3))
+    cols = np.broadcast_to(cols[:, :, None], (t, corners, 3))
+    g = sp.csr_matrix((coeff.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * t, n_unknowns))
+    return g, ok
+
+
+def unknowns_of(vertices, triangles, formulation=REDUCED):
+    """The rest-shape unknowns of a formulation: vertices, plus the 4th vertices if augmented."""
+    if formulation == AUGMENTED:
+        return np.concatenate([vertices, fourth_vertices(vertices, triangles)])
+    return vertices
+
+
+def full_gradients(rest, deformed, triangles):
+    """Sumner's full 3x3 gradients Q_j (T, 3, 3) taking `rest` to each of `deformed`.
+
+    deformed: (n, 3) or (E, n, 3). Used for the SOURCE of a transfer: the full gradient also
+    says how the normal direction moves, which matters when the target triangle is tilted
+    relative to the source one.
+    """
+    inv, _ = augmented_inverses(rest, triangles)
+    batch = np.asarray(deformed)
+    single = batch.ndim == 2
+    if single:
+        batch = batch[None]
+    out = np.empty((len(batch), len(triangles), 3, 3))
+    for k, shape in enumerate(batch):
+        v = shape[triangles]
+        v4 = fourth_vertices(shape, triangles)
+        edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], v4 - v[:, 0]], axis=2)
+        out[k] = edges @ inv
+    return out[0] if single else out
+
+
+def stacked_identity(n_triangles):
+    """Right-hand side (3T, 3) meaning 'identity gradient' on every triangle, in G's layout."""
+    return np.tile(np.eye(3), (n_triangles, 1))
+
+
+def stack_gradients(gradients):
+    """(..., T, 3, 3) gradients -> (..., 3T, 3) in G's layout (each block transposed)."""
+    g = np.swapaxes(np.asarray(gradients), -1, -2)
+    return g.reshape(g.shape[:-3] + (-1, 3))
+
+
+def triangle_adjacency(triangles):
+    """Sparse (T x T) 0/1 matrix of triangles sharing an edge."""
+    t = len(triangles)
+    edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    owner = np.repeat(np.arange(t), 3)
+    order = np.lexsort((edges[:, 1], edges[:, 0]))
+    e, o = edges[order], owner[order]
+    same = np.all(e[1:] == e[:-1], axis=1)
+    # every pair of triangles on the same edge (also non-manifold fans: consecutive pairs suffice
+    # to connect them, which is all a smoothness term needs)
+    a, b = o[:-1][same], o[1:][same]
+    keep = a != b
+    a, b = a[keep], b[keep]
+    adj = sp.csr_matrix((np.ones(2 * len(a)), (np.r_[a, b], np.r_[b, a])), shape=(t, t))
+    adj.data[:] = 1.0
+    return adj
+
+
+def smoothness_operator(gradient_op, triangles):
+    """L (3T x N): each triangle's gradient minus the mean of its edge neighbours' (0 if none)."""
+    adj = triangle_adjacency(triangles)
+    deg = np.asarray(adj.sum(axis=1)).ravel()
+    mean = sp.diags(np.divide(1.0, deg, out=np.zeros_like(deg), where=deg > 0)) @ adj
+    has_neighbours = sp.diags((deg > 0).astype(float))
+    lap = has_neighbours - mean
+    return sp.kron(lap, sp.eye(3), format="csr") @ gradient_op

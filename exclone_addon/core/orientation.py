@@ -1,0 +1,158 @@
+"""The face's own frame from its geometry: left-right symmetry plane, forward (nose), up.
+
+Canonical frame (the method's): +X the character's left, +Y up, +Z forward (nose direction).
+Supported inputs: a face in Blender's front view (-Y forward, +Z up), a Y-up import (+Z forward,
++Y up), or either rotated by up to 30 degrees about any axis.
+
+1. Symmetry plane: mirror a surface sample through candidate planes and keep the one whose mirror
+   image lands back on the surface, then refine it from mirrored point pairs.
+2. Forward: within the symmetry plane, the direction whose extreme point protrudes most from its
+   surroundings: the nose tip beats the chin, the top or the back of the head.
+3. Up: perpendicular to forward in the plane; its sign from the nose's own asymmetry (the
+   profile drops steeply below the tip, gently along the dorsum above it), cross-checked with the
+   supported input conventions (+Y or +Z roughly up).
+A frame that fails a check raises ExCloneError asking for manual landmarks.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .errors import ExCloneError
+from .mesh import boundary_vertices, triangle_areas
+
+_MANUAL = "place the landmarks by hand (or give --landmarks)"
+
+
+@dataclass
+class FaceFrame:
+    rotation: np.ndarray   # (3, 3): columns are the face's +X (left), +Y (up), +Z (forward) in mesh coords
+    origin: np.ndarray     # (3,): a point on the symmetry plane
+    diagonal: float        # bounding-box diagonal of the mesh
+    symmetry_error: float  # mean mirror mismatch / diagonal
+
+    def to_canonical(self, points):
+        return (np.asarray(points) - self.origin) @ self.rotation
+
+    def from_canonical(self, points):
+        return np.asarray(points) @ self.rotation.T + self.origin
+
+
+def surface_samples(vertices, triangles, count=6000, seed=0):
+    """Area-uniform random points on the surface.
+
+    Deterministic for a seed and equivariant: a rotated or scaled copy of a mesh gets the same
+    points on its surface.
+    """
+    area = triangle_areas(vertices, triangles)
+    total = area.sum()
+    if total <= 0:
+        raise ExCloneError("mesh has no surface area")
+    rng = np.random.default_rng(seed)
+    tri = rng.choice(len(triangles), size=count, p=area / total)
+    r1, r2 = rng.random(count), rng.random(count)
+    s = np.sqrt(r1)
+    w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
+    return np.einsum("ij,ijk->ik", w, vertices[triangles[tri]])
+
+
+def _fibonacci_directions(count):
+    i = np.arange(count) + 0.5
+    z = 1 - 2 * i / count
+    phi = np.pi * (1 + 5 ** 0.5) * i
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+def _mirror(points, normal, offset):
+    return points - 2.0 * (points @ normal - offset)[:, None] * normal
+
+
+def symmetry_plane(samples, diagonal, candidates=600):
+    """Plane (unit normal, offset) with normal . x = offset that best mirrors the samples onto themselves."""
+    tree = cKDTree(samples)
+    probe = samples[:: max(1, len(samples) // 800)]
+    centre = samples.mean(axis=0)
+    dirs = _fibonacci_directions(2 * candidates)
+    dirs = dirs[dirs[:, 2] >= 0]                           # a plane normal and its negative are one plane
+    errors = [tree.query(_mirror(probe, d, d @ centre))[0].mean() for d in dirs]
+    order = np.argsort(errors)
+    best = None
+    for d in dirs[order[:4]]:                              # refine the few best coarse candidates
+        normal, offset = d, d @ centre
+        for _ in range(12):
+            dist, idx = tree.query(_mirror(samples, normal, offset))
+            keep = dist < np.quantile(dist, 0.8)           # ignore the asymmetric fraction
+            p, q = samples[keep], samples[idx[keep]]
+            diff = p - q
+            diff[diff @ normal < 0] *= -1
+            weights = np.linalg.norm(diff, axis=1) > 1e-3 * diagonal
+            if weights.sum() < 10:
+                break
+            # the plane normal is the dominant direction of the pair differences
+            _, _, vt = np.linalg.svd(diff[weights], full_matrices=False)
+            new = vt[0] if vt[0] @ normal > 0 else -vt[0]
+            offset = np.median(((p + q) / 2.0) @ new)
+            converged = np.arccos(np.clip(new @ normal, -1, 1)) < 1e-4
+            normal = new
+            if converged:
+                break
+        error = tree.query(_mirror(samples, normal, offset))[0].mean() / diagonal
+        if best is None or error < best[2]:
+            best = (normal, offset, error)
+    return best
+
+
+def _protrusion(samples, tree, direction, candidates, radius):
+    """How far the extreme candidate in `direction` stands out of its neighbourhood."""
+    height = samples @ direction
+    tip = candidates[np.argmax(height[candidates])]
+    around = tree.query_ball_point(samples[tip], radius)
+    return height[tip] - height[around].mean(), tip
+
+
+def face_frame(vertices, triangles):
+    """The FaceFrame of a face or head mesh (see module docstring). Raises ExCloneError if unsure."""
+    used = np.unique(triangles)
+    diagonal = float(np.linalg.norm(np.ptp(vertices[used], axis=0)))
+    samples = surface_samples(vertices, triangles)
+    normal, offset, sym_error = symmetry_plane(samples, diagonal)
+    if sym_error > 0.02:
+        raise ExCloneError(
+            f"could not find the face's left-right symmetry (mirror mismatch {100 * sym_error:.1f}% "
+            f"of its size); {_MANUAL}")
+
+    # Forward: the most protruding extreme direction within the symmetry plane. Tips next to an
+    # open border (a mask's edge, a neck cut) do not count: they stick out of nothing.
+    candidates = np.abs(samples @ normal - offset) < 0.03 * diagonal
+    border = vertices[boundary_vertices(triangles)]
+    if len(border):
+        candidates &= cKDTree(border).query(samples)[0] > 0.05 * diagonal
+    candidates = np.flatnonzero(candidates)
+    if len(candidates) < 10:
+        raise ExCloneError(f"the face's profile is too small to find its nose; {_MANUAL}")
+    basis = np.linalg.svd(np.eye(3) - np.outer(normal, normal))[0][:, :2]
+    angles = np.radians(np.arange(0, 360, 1.0))
+    directions = np.cos(angles)[:, None] * basis[:, 0] + np.sin(angles)[:, None] * basis[:, 1]
+    tree = cKDTree(samples)
+    radius = 0.08 * diagonal
+    scores = np.array([_protrusion(samples, tree, d, candidates, radius)[0] for d in directions])
+    smooth = np.convolve(np.r_[scores[-7:], scores, scores[:7]], np.ones(15) / 15, mode="valid")
+    forward = directions[np.argmax(smooth)]
+
+    # Up: perpendicular to forward within the plane, signed like the supported conventions'
+    # up (+Y for a Y-up import, +Z in Blender's front view): whichever is further from forward.
+    up = np.cross(forward, normal)
+    up /= np.linalg.norm(up)
+    world_up = min(np.eye(3)[1:], key=lambda axis: abs(axis @ forward))
+    if world_up @ up < 0:
+        up = -up
+    if world_up @ up < np.cos(np.radians(50)):
+        raise ExCloneError(
+            "the face's up direction is neither +Y nor +Z (within 50 degrees) by its geometry; "
+            + _MANUAL)
+    left = np.cross(up, forward)
+    rotation = np.stack([left, up, forward], axis=1)
+    origin = samples.mean(axis=0)
+    origin = origin - (origin @ normal - offset) * normal  # on the symmetry plane
+    return FaceFrame(rotation, origin, diagonal, float(sym_error))
