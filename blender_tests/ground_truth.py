@@ -398,13 +398,13 @@ def relative_error(clone_deltas, truth_deltas, zero_tolerance=1e-6):
     return np.where(measurable, error_norm / np.where(measurable, truth_norm, 1.0), np.nan)
 
 
-def mouth_sides(vertices, triangles, inner_lip_landmarks, band, corner_radius):
+def mouth_sides(vertices, triangles, inner_lip_landmarks, band, margin):
     """Label source vertices near the mouth as upper lip (+1), lower lip (-1) or neither (0).
 
     The mouth is the border loop nearest the inner-lip landmarks; its two ends in x (the mouth
-    corners) split it into an upper and a lower half. A vertex belongs to the half it is closer
-    to along the surface, if that is within `band` and it is farther than `corner_radius` (in
-    space) from both corners, where the two lips legitimately meet.
+    corners) split it into an upper and a lower half. A vertex within `band` (along the surface)
+    of one half belongs to it if the other half is at least `margin` farther: around the mouth
+    corners, where both are about as far, the lips legitimately meet and nothing is labelled.
     """
     loops = boundary_loops(triangles)
     centre = vertices[inner_lip_landmarks].mean(axis=0)
@@ -417,12 +417,13 @@ def mouth_sides(vertices, triangles, inner_lip_landmarks, band, corner_radius):
     edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
     lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
     graph = sp.coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(len(vertices),) * 2).tocsr()
-    d_upper = dijkstra(graph, directed=False, indices=upper, min_only=True, limit=band)
-    d_lower = dijkstra(graph, directed=False, indices=lower, min_only=True, limit=band)
-    corners = vertices[[mouth[i], mouth[j]]]
-    near_corner = (np.linalg.norm(vertices[:, None] - corners[None], axis=2) < corner_radius).any(1)
+    limit = band + margin
+    # beyond `limit` dijkstra gives inf; capping there keeps the comparisons below exact
+    d_upper = np.minimum(dijkstra(graph, directed=False, indices=upper, min_only=True,
+                                  limit=limit), limit)
+    d_lower = np.minimum(dijkstra(graph, directed=False, indices=lower, min_only=True,
+                                  limit=limit), limit)
     side = np.zeros(len(vertices), dtype=np.int64)
-    side[(d_upper < d_lower) & (d_upper <= band)] = 1
-    side[(d_lower < d_upper) & (d_lower <= band)] = -1
-    side[near_corner] = 0
+    side[(d_upper <= band) & (d_lower - d_upper >= margin)] = 1
+    side[(d_lower <= band) & (d_upper - d_lower >= margin)] = -1
     return side
