@@ -105,7 +105,7 @@ def test_remesh_size_and_time(case):
 
 
 def test_topology_is_new(case, region):
-    neutral, triangles, _ = region
+    _, triangles, _ = region
     assert len(case["target_vertices"]) != ICT_FACE_VERTICES
     assert len(case["target_triangles"]) != len(triangles)
     # almost no new vertex sits on a source vertex (the border resampling starts each loop on one)
@@ -114,7 +114,7 @@ def test_topology_is_new(case, region):
 
 
 def test_remesh_is_a_clean_surface_with_the_same_borders(case, region):
-    neutral, triangles, half_open = region
+    neutral, triangles, _ = region
     new_tris = case["target_triangles"]
     n_new = len(case["target_vertices"])
     assert np.array_equal(np.unique(new_tris), np.arange(n_new)), "unused or missing vertices"
