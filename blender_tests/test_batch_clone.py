@@ -199,17 +199,23 @@ def test_blend_source_gives_its_shape_keys(tmp_path, head):
     assert np.abs(source.deltas[0] - lift).max() <= 1e-6
 
 
-def test_glb_source_gives_its_shape_keys(tmp_path, head):
+@pytest.mark.parametrize("suffix", [".fbx", ".glb"])
+def test_fbx_and_glb_sources_give_their_shape_keys(suffix, tmp_path, head):
     lift = np.zeros_like(head.vertices)
     lift[:, 1] = 0.01
     obj = mesh_io.object_from_mesh("keyed", head)
     mesh_io.write_shape_keys(obj, ["lift", "sink"], np.stack([lift, -lift]))
-    path = tmp_path / "source.glb"
-    bpy.ops.export_scene.gltf(filepath=str(path), export_morph=True)
+    path = tmp_path / f"source{suffix}"
+    if suffix == ".fbx":
+        bpy.ops.export_scene.fbx(filepath=str(path))
+    else:
+        bpy.ops.export_scene.gltf(filepath=str(path), export_morph=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    source, _, _ = batch.load_source(str(path))
+    source, description, _ = batch.load_source(str(path))
+    assert description == f"{path}:keyed"
     assert source.names == ["lift", "sink"]
-    # glTF is Y-up: the exporter and importer convert axes both ways (and may split vertices).
+    # Both formats are Y-up: exporter and importer convert the axes both ways (glTF may also
+    # split vertices, so compare every vertex with the one displacement).
     assert np.abs(source.deltas[0] - [0, 0.01, 0]).max() <= 1e-6
 
 

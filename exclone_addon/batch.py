@@ -410,9 +410,14 @@ def run(args):
     bpy.ops.wm.read_factory_settings(use_empty=True)
     source, source_description, inputs = load_source(args.source)
     if args.shapes is not None:
-        wanted = [name.strip() for name in args.shapes.split(",") if name.strip()]
+        wanted = list(dict.fromkeys(name.strip() for name in args.shapes.split(",")
+                                    if name.strip()))
         if not wanted:
             raise ExCloneError("--shapes names no expression")
+        unknown = [name for name in wanted if name not in source.names]
+        if unknown:
+            raise ExCloneError(f"unknown expression(s) {', '.join(unknown)}; available: "
+                               f"{', '.join(source.names[:6])}, ... ({len(source.names)} in all)")
         source = source.subset(wanted)
     timings["read_source"] = time.perf_counter() - clock
 
