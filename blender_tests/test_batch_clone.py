@@ -234,13 +234,13 @@ def default_run(tmp_path_factory):
     cwd = tmp_path_factory.mktemp("default_run")
     before = hashes(DATA)
     result = run_cli(cwd=cwd)
+    assert result.returncode == 0, result.stderr
     assert hashes(DATA) == before, "the run modified the bundled data"
     return cwd, result
 
 
 def test_default_run_writes_blend_report_and_preview(default_run, head):
     cwd, result = default_run
-    assert result.returncode == 0, result.stderr
     out = cwd / "out"
     assert sorted(p.name for p in out.iterdir()) == [
         "demo_head_exclone.blend", "demo_head_exclone.json", "demo_head_exclone.png"]
