@@ -1,0 +1,254 @@
+"""Automatic corresponding landmarks (METHOD.md, "Automatic landmarks").
+
+Fourteen points by geometric heuristics on the face's canonical frame (core.orientation: +X the
+character's left, +Y up, +Z forward), walking surface profiles: the mid-sagittal profile (front-most
+vertex per height bin near x = 0) and horizontal profiles through the nose tip and the nose bridge.
+Then the rest by an RBF with a linear term from a template face's heuristic points to the mesh's,
+snapped to the mesh. Points that do not exist (a mask has no back of head, no ear tips) are left out.
+"""
+from functools import lru_cache
+
+import numpy as np
+from scipy.interpolate import RBFInterpolator
+from scipy.ndimage import uniform_filter1d
+from scipy.signal import find_peaks
+from scipy.spatial import cKDTree
+
+from .errors import ExCloneError
+from .mesh import vertex_parts
+from .orientation import face_frame
+
+HEURISTIC = (
+    "nose_tip", "head_top", "ear_tip_left", "ear_tip_right", "nose_bridge", "alar_left",
+    "alar_right", "upper_lip", "lower_lip", "subnasal", "chin", "eye_inner_left",
+    "eye_inner_right", "head_back",
+)
+# Template-only points and their iBUG-68 index on the template (ICT-FaceKit's landmarks68).
+TEMPLATE_IBUG = {
+    "eye_outer_left": 45, "eye_outer_right": 36, "mouth_corner_left": 54,
+    "mouth_corner_right": 48, "brow_mid_left": 24, "brow_mid_right": 19,
+    "brow_outer_left": 26, "brow_outer_right": 17, "jaw_left": 12, "jaw_right": 4,
+    "eyelid_upper_left": 44, "eyelid_upper_right": 37,
+}
+NAMES = HEURISTIC + tuple(TEMPLATE_IBUG)
+
+
+def plane_section(points, triangles, axis, value):
+    """Segments (m, 2, 3) where the triangles cut the plane points[:, axis] == value."""
+    d = points[triangles, axis] - value                                  # (T, 3)
+    a, b = np.array([0, 1, 2]), np.array([1, 2, 0])
+    crosses = (d[:, a] * d[:, b]) < 0                                    # (T, 3) edges
+    cut = np.flatnonzero(crosses.sum(axis=1) == 2)
+    tri, da, db = triangles[cut], d[cut][:, a], d[cut][:, b]
+    t = np.divide(da, da - db, out=np.zeros_like(da), where=crosses[cut])
+    pa, pb = points[tri[:, a]], points[tri[:, b]]
+    hits = pa + t[..., None] * (pb - pa)                                 # (m, 3 edges, 3)
+    order = np.argsort(~crosses[cut], axis=1, kind="stable")[:, :2]      # the two crossing edges
+    return np.take_along_axis(hits, order[..., None], axis=1)
+
+
+def _profile(segments, walk_axis, bin_size):
+    """Front envelope (max z) of section segments sampled along `walk_axis`.
+
+    Returns (sample positions, z (NaN where no segment), envelope point per sample)."""
+    s0, s1 = segments[:, 0], segments[:, 1]
+    lo = min(s0[:, walk_axis].min(), s1[:, walk_axis].min())
+    hi = max(s0[:, walk_axis].max(), s1[:, walk_axis].max())
+    centres = np.arange(lo + bin_size / 2, hi, bin_size)
+    c0, c1 = s0[:, walk_axis][:, None], s1[:, walk_axis][:, None]       # (m, 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = (centres[None, :] - c0) / (c1 - c0)                          # (m, B)
+    inside = (t >= 0) & (t <= 1)
+    z = np.where(inside, s0[:, 2:3] + t * (s1[:, 2:3] - s0[:, 2:3]), -np.inf)
+    best = np.argmax(z, axis=0)
+    cols = np.arange(len(centres))
+    zmax = z[best, cols]
+    tb = np.clip(t[best, cols], 0, 1)[:, None]
+    pts = s0[best] + tb * (s1[best] - s0[best])
+    empty = ~np.isfinite(zmax)
+    zmax[empty] = np.nan
+    pts[empty] = np.nan
+    return centres, zmax, pts
+
+
+def _walk(centres, zbin, pts, start, direction, prominence, smooth_bins, cliff=None):
+    """Peaks and valleys of z met walking from `start` in `direction` (+1/-1) along a profile.
+
+    Returns (peak points, valley points) in walking order; gaps (a hole such as the mouth) are
+    bridged by interpolation, not stopped at. With `cliff`, the walk ends where z drops by more
+    than that between samples (the edge of an open eye socket): if no valley came before it,
+    the edge itself counts as the valley.
+    """
+    keep = ~np.isnan(zbin)
+    if keep.sum() < 5:
+        return [], []
+    z = np.interp(centres, centres[keep], zbin[keep])
+    z = uniform_filter1d(z, smooth_bins, mode="nearest")
+    ahead = np.flatnonzero((centres - start) * direction > 0)
+    if direction < 0:
+        ahead = ahead[::-1]
+    if len(ahead) < 3:
+        return [], []
+    seq = z[ahead]
+    real = np.flatnonzero(keep[ahead])
+    edge = None
+    if cliff is not None:
+        drops = np.flatnonzero(np.diff(zbin[ahead]) < -cliff)
+        if len(drops):
+            edge = drops[0]
+            seq = seq[: edge + 1]
+
+    def nearest_real(k):
+        return pts[ahead[real[np.argmin(np.abs(real - k))]]]
+
+    peaks, _ = find_peaks(seq, prominence=prominence)
+    valleys, _ = find_peaks(-seq, prominence=prominence)
+    valleys = list(valleys)
+    if edge is not None and not valleys:
+        valleys = [edge]
+    return [nearest_real(k) for k in peaks], [nearest_real(k) for k in valleys]
+
+
+def _sharpest_bend(profile, start, direction, near, far, smooth_bins):
+    """The most concave point (largest d2z) at walk distance [near, far] from `start`, or None.
+
+    A crease is a valley on some faces and only a knee (the slope flattens) on others; both are
+    where the profile bends up the most.
+    """
+    centres, z, pts = profile
+    keep = ~np.isnan(z)
+    dist = (centres - start) * direction
+    window = np.flatnonzero((dist >= near) & (dist <= far))
+    if keep.sum() < 5 or len(window) < 3:
+        return None
+    zs = uniform_filter1d(np.interp(centres, centres[keep], z[keep]), smooth_bins, mode="nearest")
+    bend = np.gradient(np.gradient(zs))
+    k = window[np.argmax(bend[window])]
+    real = np.flatnonzero(keep)
+    return pts[real[np.argmin(np.abs(real - k))]]
+
+
+def _front_most(profile, low, high):
+    """The profile's front-most point with walk coordinate in [low, high], or None."""
+    centres, z, pts = profile
+    window = np.flatnonzero((centres >= low) & (centres <= high) & ~np.isnan(z))
+    return pts[window[np.argmax(z[window])]] if len(window) else None
+
+
+def heuristic_landmarks(vertices, triangles, frame=None):
+    """The heuristic landmarks that exist on this mesh: {name: vertex id}."""
+    frame = frame or face_frame(vertices, triangles)
+    q = frame.to_canonical(vertices)
+    used = np.unique(triangles)
+    diag = frame.diagonal
+    found = {}   # name -> canonical position (snapped to a vertex at the end)
+
+    near_mid = used[np.abs(q[used, 0]) < 0.03 * diag]
+    tip = q[near_mid[np.argmax(q[near_mid, 2])]]
+    found["nose_tip"] = tip
+
+    # Does the mesh wrap around (a head) or is it a mask? Look behind the nose on the midline.
+    band = near_mid[np.abs(q[near_mid, 1] - tip[1]) < 0.15 * diag]
+    height = np.ptp(q[used, 1])
+    is_head = band.size and (tip[2] - q[band, 2].min()) > 0.35 * height
+    if is_head:
+        # the skull only: a mesh may go on into neck and shoulders below the nose
+        skull = used[q[used, 1] > tip[1]]
+        ears = used[np.abs(q[used, 1] - tip[1]) < 0.12 * diag]
+        found["head_top"] = q[used[np.argmax(q[used, 1])]]
+        found["head_back"] = q[skull[np.argmin(q[skull, 2])]]
+        found["ear_tip_left"] = q[ears[np.argmax(q[ears, 0])]]
+        found["ear_tip_right"] = q[ears[np.argmin(q[ears, 0])]]
+
+    bin_size = 0.0025 * diag
+    smooth = 3
+    prominence = 0.002 * diag
+    # Sections keep to the face side (in front of the ears' depth).
+    front_tris = triangles[np.all(q[triangles, 2] > tip[2] - 0.3 * height, axis=1)]
+    sag = _profile(plane_section(q, front_tris, 0, 0.0), 1, bin_size)
+    _, up_valleys = _walk(*sag, tip[1], +1, prominence, smooth)
+    down_peaks, down_valleys = _walk(*sag, tip[1], -1, prominence, smooth)
+    if up_valleys:
+        found["nose_bridge"] = up_valleys[0]
+    if down_valleys:
+        found["subnasal"] = down_valleys[0]
+        below = [p for p in down_peaks if p[1] < down_valleys[0][1]]
+        for name, p in zip(("upper_lip", "lower_lip"), below):
+            found[name] = p
+    if "lower_lip" in found and "nose_bridge" in found:
+        # The chin barely stands out of the groove above it on many faces, so no peak test:
+        # the front-most point in a window below the lower lip, scaled by the nose's length.
+        nose_length = found["nose_bridge"][1] - tip[1]
+        y = found["lower_lip"][1]
+        chin = _front_most(sag, y - 1.0 * nose_length, y - 0.25 * nose_length)
+        if chin is not None:
+            found["chin"] = chin
+
+    # Horizontal profiles: alar creases beside the nose, inner eye corners beside the bridge.
+    def sideways(y, name_left, name_right):
+        prof = _profile(plane_section(q, front_tris, 1, y), 0, bin_size)
+        for direction, name in ((+1, name_left), (-1, name_right)):
+            _, valleys = _walk(*prof, 0.0, direction, prominence, smooth, cliff=0.01 * diag)
+            if valleys:
+                found[name] = valleys[0]
+
+    if "nose_bridge" in found:
+        sideways(found["nose_bridge"][1], "eye_inner_left", "eye_inner_right")
+        # Alar creases: just below the tip's height, where a horizontal cut leaves the nose
+        # wing for the cheek. The first valley would be the nostril beside the columella, so
+        # take the sharpest bend at a nose-wing-like distance.
+        nose_length = found["nose_bridge"][1] - tip[1]
+        alar = _profile(plane_section(q, front_tris, 1, tip[1] - 0.1 * nose_length), 0, bin_size)
+        for direction, name in ((+1, "alar_left"), (-1, "alar_right")):
+            point = _sharpest_bend(alar, 0.0, direction, 0.2 * nose_length, 0.9 * nose_length,
+                                   2 * smooth)
+            if point is not None:
+                found[name] = point
+    names = list(found)
+    _, ids = cKDTree(q[used]).query(np.array([found[n] for n in names]))
+    return {n: int(used[i]) for n, i in zip(names, ids)}
+
+
+@lru_cache(maxsize=1)
+def _template():
+    """The bundled library's face as template: its canonical landmark positions by name."""
+    from .library import load_library
+    lib = load_library()
+    verts = lib.mesh.vertices
+    tris = lib.mesh.triangles()
+    frame = face_frame(verts, tris)
+    ids = heuristic_landmarks(verts, tris, frame)
+    ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items()})
+    q = frame.to_canonical(verts)
+    return {name: q[v] for name, v in ids.items()}
+
+
+def automatic_landmarks(vertices, triangles, frame=None):
+    """Heuristic landmarks plus template ones: (names, vertex ids), in NAMES order.
+
+    Raises ExCloneError if too few heuristic points are found to place the template.
+    """
+    frame = frame or face_frame(vertices, triangles)
+    found = heuristic_landmarks(vertices, triangles, frame)
+    template = _template()
+    shared = [n for n in HEURISTIC if n in found and n in template]
+    if len(shared) < 6:
+        missing = ", ".join(n for n in HEURISTIC if n not in found)
+        raise ExCloneError(f"only {len(shared)} landmarks found automatically (missing: {missing}); "
+                           "place the landmarks by hand")
+    q = frame.to_canonical(vertices)
+    src = np.array([template[n] for n in shared])
+    dst = np.array([q[found[n]] for n in shared])
+    # the linear term carries scale and shear between faces; the spline bends the rest
+    rbf = RBFInterpolator(src, dst, kernel="thin_plate_spline", degree=1)
+    # snap onto the parts the heuristic points are on (not eyeballs, teeth or lashes)
+    parts = vertex_parts(len(vertices), triangles)
+    on_face = np.flatnonzero(np.isin(parts, parts[list(found.values())]))
+    tree = cKDTree(q[on_face])
+    extra = [n for n in TEMPLATE_IBUG if n in template]
+    mapped = rbf(np.array([template[n] for n in extra]))
+    _, nearest = tree.query(mapped)
+    for name, k in zip(extra, nearest):
+        found[name] = int(on_face[k])
+    names = [n for n in NAMES if n in found]
+    return names, np.array([found[n] for n in names], dtype=np.int64)
