@@ -1,19 +1,27 @@
-"""The whole cloning pipeline: landmarks -> registration -> correspondence -> transfer.
-
-(Interface fixed first so the Blender layer and the batch script can be written against it; the
-engine behind it lands in the following commits.)
-"""
+"""The whole cloning pipeline: landmarks -> registration -> correspondence -> transfer."""
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
-from .mesh import PolyMesh
+from . import deformation
+from .correspondence import triangle_correspondence
+from .errors import ExCloneError
+from .landmarks import automatic_landmarks
+from .mesh import check_mesh, triangle_normals, valid_triangles, vertex_parts
+from .orientation import face_frame
+from .proximity import TriangleSurface, interpolate
+from .registration import Schedule, register
+from .transfer import Transfer
 
 
 @dataclass
 class CloneSettings:
     preset: str = "balanced"          # "fast" | "balanced" | "precise": registration schedule
     formulation: str = "reduced"      # "reduced" (2-edge QR gradient) | "augmented" (4th vertex)
+    max_distance: float = 0.05        # correspondence / closest-point cut-off, x target diagonal
 
 
 @dataclass
@@ -28,6 +36,53 @@ class CloneResult:
     quality: dict = field(default_factory=dict)   # e.g. registration_mean_distance_rel
 
 
+def similarity_transform(source_points, target_points):
+    """Least-squares similarity (R, s, t) with target ~ s R source + t."""
+    src_c, dst_c = source_points.mean(axis=0), target_points.mean(axis=0)
+    a, b = source_points - src_c, target_points - dst_c
+    rotation, _ = Rotation.align_vectors(b, a)
+    r = rotation.as_matrix()
+    s = float(np.einsum("ij,ij->", b, a @ r.T) / max(np.einsum("ij,ij->", a, a), 1e-300))
+    return r, s, dst_c - s * r @ src_c
+
+
+def outward_sign(vertices, triangles):
+    """+1 if the triangles' winding makes normals point out of the face, else -1.
+
+    Normals of a head or of a face shell point away from the enclosed side: the area-weighted
+    sum of n . (p - centre) is positive when they point out.
+    """
+    n = triangle_normals(vertices, triangles, normalize=False)
+    centroids = vertices[triangles].mean(axis=1)
+    centre = centroids.mean(axis=0)
+    return 1.0 if np.einsum("ij,ij->", n, centroids - centre) >= 0 else -1.0
+
+
+def _checked_landmarks(landmarks, n_source, n_target):
+    try:
+        src = np.asarray(landmarks["source"], dtype=np.int64).ravel()
+        tgt = np.asarray(landmarks["target"], dtype=np.int64).ravel()
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ExCloneError('landmarks must be {"source": [vertex ids], "target": [vertex ids]}') from exc
+    if len(src) != len(tgt):
+        raise ExCloneError(f"landmarks: {len(src)} source ids but {len(tgt)} target ids")
+    if len(src) < 4:
+        raise ExCloneError(f"landmarks: need at least 4 pairs, got {len(src)}")
+    for ids, n, what in ((src, n_source, "source"), (tgt, n_target, "target")):
+        if ids.min() < 0 or ids.max() >= n:
+            raise ExCloneError(f"landmarks: a {what} vertex id is outside 0..{n - 1}")
+    if len(np.unique(src)) != len(src) or len(np.unique(tgt)) != len(tgt):
+        raise ExCloneError("landmarks: a vertex id is used twice")
+    return src, tgt
+
+
+def _parts_of(ids, n_vertices, triangles):
+    """Triangles of the connected parts that hold any of the vertices `ids`."""
+    parts = vertex_parts(n_vertices, triangles)
+    keep = np.isin(parts, parts[ids])
+    return triangles[keep[triangles[:, 0]]]
+
+
 def clone_expressions(source, source_deltas, names, target, *, landmarks=None, settings=None,
                       progress=None):
     """Clone every source expression onto the target.
@@ -37,4 +92,129 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     progress: optional callable(fraction, message); it may raise core.errors.Cancelled.
     Raises ExCloneError with a user-facing message on bad input.
     """
-    raise NotImplementedError("cloning engine not implemented yet")
+    settings = settings or CloneSettings()
+    if settings.formulation not in deformation.FORMULATIONS:
+        raise ExCloneError(f"unknown formulation {settings.formulation!r}")
+    timings = {}
+    clock = time.perf_counter()
+    start = clock
+
+    def lap(name):
+        nonlocal clock
+        now = time.perf_counter()
+        timings[name] = now - clock
+        clock = now
+
+    def report(fraction, message):
+        if progress:
+            progress(fraction, message)
+
+    src_v = np.asarray(source.vertices, dtype=np.float64)
+    tgt_v = np.asarray(target.vertices, dtype=np.float64)
+    deltas = np.asarray(source_deltas, dtype=np.float64)
+    if deltas.ndim != 3 or deltas.shape[1:] != src_v.shape:
+        raise ExCloneError(f"expression deltas have shape {deltas.shape}; expected (E, {len(src_v)}, 3)")
+    if len(names) != len(deltas):
+        raise ExCloneError(f"{len(names)} names for {len(deltas)} expressions")
+    if not np.all(np.isfinite(deltas)):
+        raise ExCloneError("source expressions contain NaN or infinite values")
+    src_all, tgt_all = source.triangles(), target.triangles()
+    check_mesh(src_v, src_all, "source mesh")
+    check_mesh(tgt_v, tgt_all, "target mesh")
+    src_tris = src_all[valid_triangles(src_v, src_all)]
+    tgt_tris = tgt_all[valid_triangles(tgt_v, tgt_all)]
+
+    # 1. Landmarks
+    report(0.0, "landmarks")
+    if landmarks is None:
+        src_frame = face_frame(src_v, src_tris)
+        tgt_frame = face_frame(tgt_v, tgt_tris)
+        src_names, src_ids = automatic_landmarks(src_v, src_tris, src_frame)
+        tgt_names, tgt_ids = automatic_landmarks(tgt_v, tgt_tris, tgt_frame)
+        common = [n for n in src_names if n in tgt_names]
+        src_lm = np.array([src_ids[src_names.index(n)] for n in common])
+        tgt_lm = np.array([tgt_ids[tgt_names.index(n)] for n in common])
+        landmark_names = common
+    else:
+        src_lm, tgt_lm = _checked_landmarks(landmarks, len(src_v), len(tgt_v))
+        landmark_names = [f"landmark_{k}" for k in range(len(src_lm))]
+    lap("landmarks")
+
+    # 2. Registration of the source parts the landmarks are on, in the target's frame
+    report(0.15, "registration")
+    src_region = _parts_of(src_lm, len(src_v), src_tris)
+    tgt_region = _parts_of(tgt_lm, len(tgt_v), tgt_tris)
+    rot, scale, shift = similarity_transform(src_v[src_lm], tgt_v[tgt_lm])
+    aligned = src_v @ rot.T * scale + shift
+    src_sign = outward_sign(aligned, src_region)
+    tgt_sign = outward_sign(tgt_v, tgt_region)
+    diag = float(np.linalg.norm(np.ptp(tgt_v[np.unique(tgt_region)], axis=0)))
+    schedule = Schedule.preset(settings.preset)
+    schedule.max_distance = settings.max_distance
+
+    def registration_progress(fraction, message):
+        report(0.15 + 0.55 * fraction, message)
+
+    reg = register(aligned, src_region, tgt_v, tgt_region, src_lm, tgt_v[tgt_lm],
+                   formulation=settings.formulation, schedule=schedule,
+                   source_normal_sign=src_sign, target_normal_sign=tgt_sign,
+                   progress=registration_progress)
+    lap("registration")
+    if reg.valid_fraction < 0.3:
+        raise ExCloneError(
+            f"registration did not converge: only {100 * reg.valid_fraction:.0f}% of the source "
+            "face found the target surface; check the landmarks")
+
+    # 3. Correspondence
+    report(0.7, "correspondence")
+    corr = triangle_correspondence(reg.vertices, src_region, tgt_v, tgt_region,
+                                   settings.max_distance * diag, src_sign, tgt_sign)
+    if len(corr.weights) == 0:
+        raise ExCloneError("no triangle of the target corresponds to the source; check the landmarks")
+    lap("correspondence")
+
+    # 4. Transfer: gradients of the aligned source, one factorisation for all expressions
+    report(0.8, "transfer")
+    aligned_deltas = deltas @ rot.T * scale
+    gradients = deformation.full_gradients(aligned, aligned + aligned_deltas, src_region)
+    transfer = Transfer(tgt_v, tgt_region, corr, len(src_region), settings.formulation)
+    anchors, anchor_disp = _anchor_points(reg.vertices, src_region, tgt_v, tgt_region,
+                                          aligned_deltas, settings.max_distance * diag)
+    result = transfer(gradients, anchor_disp, anchors)
+    _follow_degenerate(result, tgt_v, tgt_all, tgt_region)
+    lap("transfer")
+    if not np.all(np.isfinite(result)):
+        raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
+
+    timings["total"] = time.perf_counter() - start
+    quality = {
+        "registration_mean_distance": reg.mean_distance,
+        "registration_mean_distance_rel": reg.mean_distance / diag,
+        "registration_valid_fraction": reg.valid_fraction,
+        "registration_history_rel": [h / diag for h in reg.history],
+        "correspondence_coverage": corr.coverage(len(tgt_region)),
+        "landmark_count": int(len(src_lm)),
+        "similarity_scale": scale,
+        "target_diagonal": diag,
+    }
+    report(1.0, "done")
+    return CloneResult(list(names), result, src_lm, tgt_lm, landmark_names, reg.vertices,
+                       timings, quality)
+
+
+def _anchor_points(registered, src_tris, tgt_v, tgt_tris, aligned_deltas, max_distance):
+    """Target vertices that lie on the registered source, and the source's displacement there."""
+    ids = np.unique(tgt_tris)
+    _, tri, dist, bary = TriangleSurface(registered, src_tris).closest(tgt_v[ids])
+    near = dist < max_distance
+    disp = interpolate(np.moveaxis(aligned_deltas, 0, 1), src_tris, tri[near], bary[near])
+    return ids[near], np.moveaxis(disp, 1, 0)
+
+
+def _follow_degenerate(result, vertices, all_tris, used_tris):
+    """Vertices only on degenerate (skipped) triangles move with their nearest solved vertex."""
+    solved = np.unique(used_tris)
+    orphans = np.setdiff1d(np.unique(all_tris), solved)
+    if len(orphans):
+        _, nearest = cKDTree(vertices[solved]).query(vertices[orphans])
+        result[:, orphans] = result[:, solved[nearest]]

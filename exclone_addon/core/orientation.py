@@ -71,11 +71,14 @@ def _mirror(points, normal, offset):
 def symmetry_plane(samples, diagonal, candidates=600):
     """Plane (unit normal, offset) with normal . x = offset that best mirrors the samples onto themselves."""
     tree = cKDTree(samples)
-    probe = samples[:: max(1, len(samples) // 800)]
+    probe = samples[:: max(1, len(samples) // 400)]
     centre = samples.mean(axis=0)
     dirs = _fibonacci_directions(2 * candidates)
     dirs = dirs[dirs[:, 2] >= 0]                           # a plane normal and its negative are one plane
-    errors = [tree.query(_mirror(probe, d, d @ centre))[0].mean() for d in dirs]
+    # all candidate mirror images in one KD-tree query
+    heights = (probe - centre) @ dirs.T                                   # (p, d)
+    mirrored = probe[None] - 2.0 * heights.T[:, :, None] * dirs[:, None]  # (d, p, 3)
+    errors = tree.query(mirrored.reshape(-1, 3), workers=-1)[0].reshape(len(dirs), -1).mean(axis=1)
     order = np.argsort(errors)
     best = None
     for d in dirs[order[:4]]:                              # refine the few best coarse candidates

@@ -1,0 +1,77 @@
+"""Deformation transfer (Sumner & Popovic 2004) with one factorisation for all expressions.
+
+For target displacements d: min sum over pairs w ||S_s - T_t(x0 + d)||_F^2, plus identity
+gradients on target triangles with no pair (they follow without deforming). The normal matrix
+depends on the target neutral and the pairs only, so it is factorised once and every expression
+is a back-substitution; all expressions go through as one multi-column right-hand side.
+
+Solving for displacements makes a zero expression give exactly zero. Gradients fix a shape only
+up to a translation per connected part, so each part's translation is set afterwards: covered
+parts take the source's mean displacement at their vertices' corresponding points, parts with no
+correspondence stay where they are.
+"""
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse.linalg import splu
+
+from . import deformation
+from .mesh import vertex_adjacency
+
+
+class Transfer:
+    def __init__(self, target_vertices, target_triangles, correspondence, n_source_triangles,
+                 formulation=deformation.REDUCED, uncovered_weight=1.0):
+        self.n = len(target_vertices)
+        t = len(target_triangles)
+        self.grad, _ = deformation.gradient_operator(target_vertices, target_triangles, formulation)
+        self.rest = deformation.unknowns_of(target_vertices, target_triangles, formulation)
+        self.pairs = correspondence.matrix(t, n_source_triangles)               # (Tt x Ts)
+        covered_weight = np.asarray(self.pairs.sum(axis=1)).ravel()
+        self.uncovered = covered_weight == 0
+        self.row_weight = np.where(self.uncovered, uncovered_weight, covered_weight)
+        w_rows = sp.diags(np.repeat(self.row_weight, 3))
+        normal = (self.grad.T @ w_rows @ self.grad).tocsc()
+        # a whisper of regularisation keeps the per-part translations definite; they are set
+        # explicitly afterwards (see module docstring)
+        eps = 1e-10 * normal.diagonal().mean()
+        self.factor = splu(normal + eps * sp.identity(normal.shape[0], format="csc"),
+                           permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                           options={"SymmetricMode": True})
+        self.rest_gradients = self.grad @ self.rest                             # (3Tt, 3)
+        self.uncovered_weight = uncovered_weight
+        _, self.parts = connected_components(vertex_adjacency(self.n, target_triangles),
+                                             directed=False)
+
+    def __call__(self, source_gradients, anchor_displacements=None, anchor_vertices=None):
+        """source_gradients: (E, Ts, 3, 3) full gradients of the source expressions.
+
+        anchor_displacements: (E, k, 3) the source's displacement at the corresponding points of
+        target vertices anchor_vertices (k,), to set each covered part's translation.
+        Returns target displacements (E, n, 3).
+        """
+        e, ts = source_gradients.shape[:2]
+        flat = source_gradients.reshape(e, ts, 9).transpose(1, 0, 2).reshape(ts, e * 9)
+        accumulated = (self.pairs @ flat).reshape(-1, e, 3, 3).transpose(1, 0, 2, 3)  # (E,Tt,3,3)
+        accumulated[:, self.uncovered] = self.uncovered_weight * np.eye(3)
+        target = deformation.stack_gradients(accumulated)                      # (E, 3Tt, 3)
+        residual = target - np.repeat(self.row_weight, 3)[:, None] * self.rest_gradients
+        rhs = self.grad.T @ residual.transpose(1, 0, 2).reshape(-1, e * 3)     # (N, 3E)
+        solution = self.factor.solve(np.ascontiguousarray(rhs))
+        d = solution.reshape(-1, e, 3).transpose(1, 0, 2)[:, : self.n]         # (E, n, 3)
+        return self._anchor(d, anchor_displacements, anchor_vertices)
+
+    def _anchor(self, d, anchor_displacements, anchor_vertices):
+        parts = self.parts
+        count = np.bincount(parts)
+        shift = -np.stack([np.stack([np.bincount(parts, d[k, :, c], len(count)) for c in range(3)], 1)
+                           for k in range(len(d))]) / count[None, :, None]       # (E, P, 3)
+        if anchor_vertices is not None and len(anchor_vertices):
+            owner = parts[anchor_vertices]
+            n_anchor = np.bincount(owner, minlength=len(count))
+            gap = anchor_displacements - d[:, anchor_vertices]                  # (E, k, 3)
+            sums = np.stack([np.stack([np.bincount(owner, gap[k, :, c], len(count))
+                                       for c in range(3)], 1) for k in range(len(d))])
+            anchored = n_anchor > 0
+            shift[:, anchored] = sums[:, anchored] / n_anchor[anchored, None]
+        return d + shift[:, parts]
