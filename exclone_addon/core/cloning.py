@@ -10,10 +10,10 @@ from . import deformation
 from .correspondence import triangle_correspondence
 from .errors import ExCloneError
 from .landmarks import automatic_landmarks
-from .mesh import check_mesh, triangle_normals, valid_triangles, vertex_parts
+from .mesh import check_mesh, triangle_normals, valid_triangles, vertex_normals, vertex_parts
 from .orientation import face_frame
 from .proximity import TriangleSurface, interpolate
-from .registration import Schedule, register
+from .registration import Schedule, register, similarity_icp
 from .transfer import Transfer
 
 
@@ -22,6 +22,7 @@ class CloneSettings:
     preset: str = "balanced"          # "fast" | "balanced" | "precise": registration schedule
     formulation: str = "reduced"      # "reduced" (2-edge QR gradient) | "augmented" (4th vertex)
     max_distance: float = 0.05        # correspondence / closest-point cut-off, x target diagonal
+    landmark_weight: float = 100     # automatic landmarks are soft, this much per landmark
 
 
 @dataclass
@@ -151,6 +152,16 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     diag = float(np.linalg.norm(np.ptp(tgt_v[np.unique(tgt_region)], axis=0)))
     schedule = Schedule.preset(settings.preset)
     schedule.max_distance = settings.max_distance
+    if landmarks is None:
+        # Automatic landmarks are approximate: they start the alignment, the surfaces finish it
+        # (a similarity ICP), and they guide the non-rigid fit softly.
+        normals = src_sign * vertex_normals(aligned, src_region)
+        region_ids = np.unique(src_region)
+        r2, s2, t2 = similarity_icp(aligned[region_ids], normals[region_ids], tgt_v, tgt_region,
+                                    tgt_sign, settings.max_distance * diag)
+        aligned = aligned @ r2.T * s2 + t2
+        rot, scale, shift = r2 @ rot, s2 * scale, s2 * (r2 @ shift) + t2
+        schedule.landmark_weight = settings.landmark_weight
 
     def registration_progress(fraction, message):
         report(0.15 + 0.55 * fraction, message)

@@ -145,11 +145,27 @@ def triangle_adjacency(triangles):
     return adj
 
 
-def smoothness_operator(gradient_op, triangles):
-    """L (3T x N): each triangle's gradient minus the mean of its edge neighbours' (0 if none)."""
+def neighbour_difference(triangles):
+    """D (3T x 3T): each triangle's 3x3 block minus the mean of its edge neighbours' (0 if none)."""
     adj = triangle_adjacency(triangles)
     deg = np.asarray(adj.sum(axis=1)).ravel()
     mean = sp.diags(np.divide(1.0, deg, out=np.zeros_like(deg), where=deg > 0)) @ adj
     has_neighbours = sp.diags((deg > 0).astype(float))
-    lap = has_neighbours - mean
-    return sp.kron(lap, sp.eye(3), format="csr") @ gradient_op
+    return sp.kron(has_neighbours - mean, sp.eye(3), format="csr")
+
+
+def normal_completion(vertices, triangles, formulation=REDUCED):
+    """Constant (3T, 3) to add to G @ X so that the rest shape has identity gradients.
+
+    A reduced gradient at rest is the projector onto its triangle's plane, not I; adding the rest
+    normal's projector n n^T makes it I again (the first-order completion of the dropped normal
+    direction). Without it a smoothness term would pull every triangle towards its neighbours'
+    plane, i.e. flatten the face. The augmented form is already I at rest: zeros.
+    """
+    if formulation == AUGMENTED:
+        return np.zeros((3 * len(triangles), 3))
+    v = vertices[triangles]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    length = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    return stack_gradients(n[:, :, None] * n[:, None, :])

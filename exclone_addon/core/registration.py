@@ -30,6 +30,10 @@ class Schedule:
     smooth_weight: float = 1.0
     identity_weight: float = 0.001
     max_distance: float = 0.05        # closest points further than this x target diagonal are ignored
+    # None: landmarks are hard constraints (user-placed ones). A number: soft, with this weight
+    # per landmark against a closest-point weight of 1 per vertex (automatic ones, which can be
+    # off by a few percent and must not pin the fit to their error).
+    landmark_weight: float = None
 
     @classmethod
     def preset(cls, name):
@@ -81,6 +85,35 @@ def closest_valid_points(points, normals, surface, surface_normals, border, max_
     return closest, valid, dist
 
 
+def similarity_icp(source_points, source_normals, target_vertices, target_triangles,
+                   target_normal_sign=1.0, max_distance=np.inf, iterations=100):
+    """Refine a rough alignment of the source points to the target surface by a similarity.
+
+    Each iteration pairs every source point with its closest target point (normals within 90
+    degrees, within max_distance, the worst 10% trimmed) and solves the least-squares similarity.
+    Returns (R, s, t) to apply on top of the current positions.
+    """
+    from .cloning import similarity_transform   # one Umeyama for the whole core
+    surface = TriangleSurface(target_vertices, target_triangles)
+    normals_t = target_normal_sign * vertex_normals(target_vertices, target_triangles)
+    total_r, total_s, total_t = np.eye(3), 1.0, np.zeros(3)
+    points, normals = source_points.copy(), source_normals.copy()
+    for _ in range(iterations):
+        closest, tri, dist, bary = surface.closest(points)
+        facing = np.einsum("ij,ij->i", interpolate(normals_t, target_triangles, tri, bary), normals)
+        ok = (facing > 0) & (dist < max_distance)
+        if ok.sum() < 10:
+            break
+        ok &= dist <= np.quantile(dist[ok], 0.9)
+        r, s, t = similarity_transform(points[ok], closest[ok])
+        points = points @ r.T * s + t
+        normals = normals @ r.T
+        total_r, total_s, total_t = r @ total_r, s * total_s, s * (r @ total_t) + t
+        if np.linalg.norm(r - np.eye(3)) < 1e-6 and abs(s - 1) < 1e-6:
+            break
+    return total_r, total_s, total_t
+
+
 def register(source_vertices, source_triangles, target_vertices, target_triangles,
              landmark_ids, landmark_positions, *, formulation=deformation.REDUCED,
              schedule=None, source_normal_sign=1.0, target_normal_sign=1.0, progress=None):
@@ -105,7 +138,11 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
     region = np.unique(source_triangles)
 
     grad, _ = deformation.gradient_operator(source_vertices, source_triangles, formulation)
-    smooth = deformation.smoothness_operator(grad, source_triangles)
+    difference = deformation.neighbour_difference(source_triangles)
+    smooth = difference @ grad
+    # E_S = || D (G x + C) ||^2 with C the normal completion, so the rest shape costs nothing
+    smooth_rhs = -(difference @ deformation.normal_completion(source_vertices, source_triangles,
+                                                                formulation))
     n_unknowns = grad.shape[1]
     rest = deformation.unknowns_of(source_vertices, source_triangles, formulation)
     identity_rhs = deformation.stacked_identity(t)
@@ -116,24 +153,36 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
     outside[region] = False
     if formulation == deformation.AUGMENTED:
         outside[n:] = False
-    fixed = np.zeros(n_unknowns, dtype=bool)
-    fixed[landmark_ids] = True
-    free = ~fixed
+    hard = np.zeros(n_unknowns, dtype=bool)
+    hard[landmark_ids] = True
+    nothing = np.zeros(n_unknowns, dtype=bool)
     x = rest.copy()
     x[landmark_ids] = landmark_positions
+    landmark_targets = np.zeros((n_unknowns, 3))
+    landmark_targets[landmark_ids] = landmark_positions
 
     base = (schedule.smooth_weight * (smooth.T @ smooth)
             + schedule.identity_weight * (grad.T @ grad)
             + sp.diags(outside.astype(float))).tocsr()
-    base_rhs = schedule.identity_weight * (grad.T @ identity_rhs) + outside[:, None] * rest
+    base_rhs = (schedule.smooth_weight * (smooth.T @ smooth_rhs)
+                + schedule.identity_weight * (grad.T @ identity_rhs) + outside[:, None] * rest)
 
     surface = TriangleSurface(target_vertices, target_triangles)
     target_normals = target_normal_sign * vertex_normals(target_vertices, target_triangles)
     border = np.zeros(len(target_vertices), dtype=bool)
     border[boundary_vertices(target_triangles)] = True
+    source_border = np.zeros(n, dtype=bool)
+    source_border[boundary_vertices(source_triangles)] = True
+    # Target points pull the source too (symmetric closest points): without it the source can
+    # settle on part of the target and leave the rest uncovered. Each target vertex weighs its
+    # share of the surface in units of a source vertex's share, so density does not matter.
+    target_ids = np.unique(target_triangles)
+    target_share = _vertex_areas(target_vertices, target_triangles)[target_ids]
+    target_share /= _vertex_areas(source_vertices, source_triangles)[region].mean()
     solver = ReusedOrderingSolver()
     history = []
-    steps = (0.0,) + tuple(schedule.closest_weights)
+    # the landmark-only solve starts a fit from hard landmarks; soft ones start from the surfaces
+    steps = ((0.0,) if schedule.landmark_weight is None else ()) + tuple(schedule.closest_weights)
     valid = np.zeros(n, dtype=bool)
     for k, w_c in enumerate(steps):
         if progress:
@@ -152,9 +201,23 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
             data[:n] = w_c * valid
             rhs += data[:, None] * targets
             history.append(float(distance.mean()) * unit)
-        matrix = (base + sp.diags(data)).tocsr()
-        a_ff = matrix[free][:, free]
-        b_f = rhs[free] - matrix[free][:, fixed] @ x[fixed]
+            pull, pull_rhs = _target_pull(x[:n], source_triangles, source_normal_sign,
+                                          source_border, target_vertices[target_ids],
+                                          target_normals[target_ids], target_share,
+                                          schedule.max_distance * diag, n_unknowns)
+            matrix = (base + sp.diags(data) + w_c * pull).tocsr()
+            rhs += w_c * pull_rhs
+        else:
+            matrix = base
+        released = schedule.landmark_weight is not None
+        fixed = nothing if released else hard
+        if released:
+            pin = np.where(hard, schedule.landmark_weight * max(w_c, 1.0), 0.0)
+            matrix = matrix + sp.diags(pin)
+            rhs = rhs + pin[:, None] * landmark_targets
+        free = ~fixed
+        a_ff = sp.csr_matrix(matrix)[free][:, free]
+        b_f = rhs[free] - sp.csr_matrix(matrix)[free][:, fixed] @ x[fixed]
         x[free] = solver.solve(a_ff, b_f)
     distances = surface.closest(x[region])[2]
     history.append(float(distances.mean()) * unit)
@@ -164,3 +227,31 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
         valid_fraction=float(valid[region].mean()) if len(region) else 0.0,
         history=history,
     )
+
+
+def _vertex_areas(vertices, triangles):
+    """A third of the area of every triangle around each vertex."""
+    area = np.linalg.norm(np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
+                                   vertices[triangles[:, 2]] - vertices[triangles[:, 0]]), axis=1) / 6
+    return np.bincount(triangles.ravel(), np.repeat(area, 3), minlength=len(vertices))
+
+
+def _target_pull(source, source_triangles, source_sign, source_border, points, point_normals,
+                 weights, max_distance, n_unknowns):
+    """Normal-equation terms (B^T W B, B^T W p) pulling the source surface onto target points.
+
+    B picks, for each target point, the barycentric combination of the source triangle closest
+    to it; points that land on the source's open border, face the other way or are too far are
+    left out (the target may extend past the source, e.g. the back of a head).
+    """
+    surface = TriangleSurface(source, source_triangles)
+    _, tri, dist, bary = surface.closest(points)
+    corners = source_triangles[tri]
+    normals = source_sign * vertex_normals(source, source_triangles)
+    facing = np.einsum("ij,ij->i", interpolate(normals, source_triangles, tri, bary), point_normals)
+    ok = (dist < max_distance) & (facing > 0) & ~source_border[corners].any(axis=1)
+    rows = np.repeat(np.flatnonzero(ok), 3)
+    b = sp.csr_matrix((bary[ok].ravel(), (rows, corners[ok].ravel())),
+                      shape=(len(points), n_unknowns))
+    w = sp.diags(np.where(ok, weights, 0.0))
+    return (b.T @ w @ b), b.T @ (w @ points)
