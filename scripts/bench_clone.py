@@ -1,0 +1,426 @@
+"""Benchmark the cloning engine: time per phase, peak memory, registration error, formulations.
+
+    .venv/bin/python scripts/bench_clone.py [--out bench.json] [--quick]
+
+Prints one JSON document (and writes it with --out). Every case runs in a fresh subprocess of
+this script (`--case NAME`, internal) so that peak memory and warm caches of one case do not leak
+into another. Cases:
+
+- face: the ICT face region (first 9,409 vertices of the bundled library and the polygons among
+  them, deltas restricted to them) onto the bundled demo head (MakeHuman, 4,244 vertices);
+- head: the full ICT head (26,719 vertices, all parts) onto the demo head;
+- face_dense_target: the face region onto the demo head subdivided once (midpoint subdivision,
+  same shape, about 4x the vertices): a third size point, for memory against target size;
+- compare: with ONE set of automatic landmarks (the engine's own, from a first clone) and the same
+  schedule, the reduced vs the augmented formulation, and trimesh.registration.nricp_sumner on
+  the same source region, target region and landmarks; all errors by one metric (below).
+
+Per case: a cold clone (first in its process: pays one-time costs such as the landmark
+template), a warm clone, then a clone under tracemalloc. Peak memory is reported twice, because
+each misses something: tracemalloc sees Python and numpy allocations but not SuperLU's own
+malloc'd factors; ru_maxrss growth (peak resident size during the cold clone minus that after
+loading the inputs) sees everything the process touched.
+
+Error metric everywhere: mean distance of the registered source region's vertices to the target
+region's surface (core.proximity.TriangleSurface) / the target region's bounding-box diagonal;
+for the engine this is CloneResult.quality["registration_mean_distance_rel"].
+
+--quick: only the face case and the reduced/augmented comparison (no trimesh, no full head,
+no dense target). Targets are reported as booleans, never asserted.
+"""
+import argparse
+import gc
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import scipy
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+from exclone_addon.core.cloning import CloneSettings, clone_expressions, similarity_transform  # noqa: E402
+from exclone_addon.core.library import load_library  # noqa: E402
+from exclone_addon.core.mesh import PolyMesh, read_obj, valid_triangles, vertex_parts  # noqa: E402
+from exclone_addon.core.proximity import TriangleSurface  # noqa: E402
+from exclone_addon.core.registration import PRESETS  # noqa: E402
+
+DEMO_HEAD = ROOT / "exclone_addon" / "data" / "demo_head.obj"
+FACE_VERTICES = 9409           # ICT-FaceKit's "face" part is vertices [0, 9409)
+PHASES = ("landmarks", "registration", "correspondence", "transfer")
+MIB = 1024.0 * 1024.0
+# trimesh's own default schedule of nricp_sumner, rows (wc, wi, ws, wl, wn); written out so the
+# JSON states exactly what ran even if trimesh changes its default.
+TRIMESH_STEPS = [[1, 0.001, 1.0, 1000, 0], [1, 0.001, 1.0, 1000, 0],
+                 [10, 0.001, 1.0, 1000, 0], [100, 0.001, 1.0, 1000, 0]]
+
+# Targets of the benchmark issue.
+TARGET_FACE_SETUP_S = 2.0      # landmarks + registration + correspondence, face region onto head
+TARGET_FACE_TRANSFER_S = 1.0   # transfer of all 57 expressions after that
+TARGET_REDUCED_SPEEDUP = 2.5   # reduced vs augmented registration, at no worse error
+TARGET_TRIMESH_SPEEDUP = 10.0  # reduced vs trimesh nricp_sumner, at equal or better error
+
+
+# ---------------------------------------------------------------------------- inputs
+
+def face_region(library):
+    """The library's first FACE_VERTICES vertices, the polygons among them, their deltas."""
+    mesh = library.mesh
+    starts = np.concatenate([[0], np.cumsum(mesh.loop_totals)[:-1]])
+    corner_ok = mesh.loop_vertices < FACE_VERTICES
+    keep = np.logical_and.reduceat(corner_ok, starts)
+    region = PolyMesh(mesh.vertices[:FACE_VERTICES], mesh.loop_totals[keep],
+                      mesh.loop_vertices[np.repeat(keep, mesh.loop_totals)])
+    return region, library.deltas[:, :FACE_VERTICES]
+
+
+def subdivided(mesh):
+    """The mesh's triangles split once at edge midpoints (same surface, about 4x the vertices)."""
+    import trimesh.remesh
+    vertices, faces = trimesh.remesh.subdivide(mesh.vertices, mesh.triangles())
+    return PolyMesh.from_faces(vertices, faces)
+
+
+def case_inputs(name):
+    """(source mesh, deltas, names, target mesh) of a case."""
+    library = load_library()
+    target = read_obj(DEMO_HEAD)
+    if name == "head":
+        return library.mesh, library.deltas, library.names, target
+    source, deltas = face_region(library)
+    if name == "face_dense_target":
+        target = subdivided(target)
+    return source, deltas, library.names, target
+
+
+def regions(source, target, src_lm, tgt_lm):
+    """The engine's registration regions: valid triangles of the parts holding the landmarks."""
+    out = []
+    for mesh, ids in ((source, src_lm), (target, tgt_lm)):
+        tris = mesh.triangles()
+        tris = tris[valid_triangles(mesh.vertices, tris)]
+        parts = vertex_parts(len(mesh.vertices), tris)
+        out.append(tris[np.isin(parts, parts[ids])[tris[:, 0]]])
+    return out
+
+
+def registration_error(registered, src_region, target_vertices, tgt_region):
+    """Mean distance of the registered region vertices to the target surface / target diagonal."""
+    ids = np.unique(src_region)
+    diag = float(np.linalg.norm(np.ptp(target_vertices[np.unique(tgt_region)], axis=0)))
+    distances = TriangleSurface(target_vertices, tgt_region).closest(registered[ids])[2]
+    return float(distances.mean()) / diag
+
+
+# ---------------------------------------------------------------------------- measurements
+
+def max_rss_mib():
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0   # KiB on Linux
+
+
+def rss_baseline_mib():
+    """Reset the peak to the current resident size (Linux clear_refs 5, which ru_maxrss follows)
+    and return it; else the peak so far (then loading the inputs may hide part of the growth)."""
+    try:
+        with open("/proc/self/clear_refs", "w", encoding="ascii") as fh:
+            fh.write("5")
+        with open("/proc/self/statm", encoding="ascii") as fh:
+            return int(fh.read().split()[1]) * resource.getpagesize() / MIB, True
+    except OSError:
+        return max_rss_mib(), False
+
+
+def phase_times(result):
+    times = {phase: round(result.timings[phase], 4) for phase in PHASES}
+    times["landmarks_registration_correspondence"] = round(
+        sum(result.timings[p] for p in PHASES[:3]), 4)
+    times["total"] = round(result.timings["total"], 4)
+    return times
+
+
+def timed_clone(*args, **kwargs):
+    """clone_expressions, and the CPU seconds it used (all threads: compare with wall time to see
+    whether other load on the machine stretched the wall times)."""
+    cpu = time.process_time()
+    result = clone_expressions(*args, **kwargs)
+    return result, round(time.process_time() - cpu, 3)
+
+
+def run_case(name):
+    source, deltas, names, target = case_inputs(name)
+    gc.collect()
+    rss_before, peak_was_reset = rss_baseline_mib()
+    cold, cold_cpu = timed_clone(source, deltas, names, target)
+    rss_growth = max_rss_mib() - rss_before
+    warm, warm_cpu = timed_clone(source, deltas, names, target)
+    gc.collect()
+    tracemalloc.start()
+    traced = clone_expressions(source, deltas, names, target)
+    _, traced_peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    quality = cold.quality
+    return {
+        "source_vertices": int(len(source.vertices)),
+        "source_triangles": int(len(source.triangles())),
+        "target_vertices": int(len(target.vertices)),
+        "target_triangles": int(len(target.triangles())),
+        "expressions": len(names),
+        "landmark_count": quality["landmark_count"],
+        "seconds_cold": phase_times(cold),
+        "seconds_warm": phase_times(warm),
+        "cpu_seconds_cold": cold_cpu,
+        "cpu_seconds_warm": warm_cpu,
+        "peak_rss_growth_mib": round(rss_growth, 1),
+        "peak_rss_reset_before_clone": peak_was_reset,
+        "tracemalloc_peak_mib": round(traced_peak / MIB, 1),
+        "registration_mean_distance_rel": quality["registration_mean_distance_rel"],
+        "registration_valid_fraction": quality["registration_valid_fraction"],
+        "correspondence_coverage": quality["correspondence_coverage"],
+        "same_output_cold_warm_traced": bool(np.array_equal(cold.deltas, warm.deltas)
+                                             and np.array_equal(cold.deltas, traced.deltas)),
+    }
+
+
+def run_compare(with_trimesh, repeats=2):
+    source, deltas, names, target = case_inputs("face")
+    first = clone_expressions(source, deltas, names, target)     # the engine's automatic landmarks
+    src_lm, tgt_lm = first.source_landmarks, first.target_landmarks
+    landmarks = {"source": src_lm, "target": tgt_lm}
+    src_region, tgt_region = regions(source, target, src_lm, tgt_lm)
+    settings = CloneSettings()
+    out = {
+        "case": "face region onto demo head",
+        "landmarks": {"count": int(len(src_lm)), "names": first.landmark_names,
+                      "source_ids": src_lm.tolist(), "target_ids": tgt_lm.tolist()},
+        "schedule": {"preset": settings.preset, "closest_weights": list(PRESETS[settings.preset]),
+                     "max_distance_rel": settings.max_distance},
+        "repeats": repeats,
+        "timing": f"best of {repeats} alternating runs (after one warm-up clone)",
+        "landmarks_note": "the automatic landmarks of a first clone, then passed to every run as "
+                          "explicit landmarks (clone_expressions' landmarks= path)",
+    }
+    runs = {"reduced": [], "augmented": []}
+    for _ in range(repeats):
+        for formulation in runs:
+            result = clone_expressions(source, deltas, names, target, landmarks=landmarks,
+                                       settings=CloneSettings(formulation=formulation))
+            runs[formulation].append(result)
+    for formulation, results in runs.items():
+        best = min(results, key=lambda r: r.timings["registration"])
+        out[formulation] = {
+            "registration_seconds": round(best.timings["registration"], 4),
+            "registration_seconds_all": [round(r.timings["registration"], 4) for r in results],
+            "transfer_seconds": round(best.timings["transfer"], 4),
+            "registration_mean_distance_rel": registration_error(
+                best.registered_source, src_region, target.vertices, tgt_region),
+            "engine_reported_error_rel": best.quality["registration_mean_distance_rel"],
+            "registration_valid_fraction": best.quality["registration_valid_fraction"],
+        }
+    red, aug = out["reduced"], out["augmented"]
+    out["augmented_over_reduced_time"] = round(aug["registration_seconds"] / red["registration_seconds"], 2)
+    out["augmented_over_reduced_error"] = round(
+        aug["registration_mean_distance_rel"] / red["registration_mean_distance_rel"], 3)
+    if with_trimesh:
+        out["trimesh_nricp_sumner"] = run_trimesh(source, target, src_lm, tgt_lm, src_region,
+                                                   tgt_region)
+        tri = out["trimesh_nricp_sumner"]
+        out["trimesh_over_reduced_time"] = round(tri["seconds"] / red["registration_seconds"], 2)
+        out["trimesh_over_reduced_error"] = round(
+            tri["registration_mean_distance_rel"] / red["registration_mean_distance_rel"], 3)
+    return out
+
+
+def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
+    """trimesh's Sumner-Popovic registration on the engine's region, alignment and landmarks."""
+    import trimesh
+    import trimesh.registration
+    # the same similarity pre-alignment as the engine's (cloning.similarity_transform)
+    rot, scale, shift = similarity_transform(source.vertices[src_lm], target.vertices[tgt_lm])
+    aligned = source.vertices @ rot.T * scale + shift
+    ids = np.unique(src_region)
+    local = np.full(len(source.vertices), -1)
+    local[ids] = np.arange(len(ids))
+    # process=False: trimesh would otherwise merge vertices and renumber the landmarks
+    source_mesh = trimesh.Trimesh(aligned[ids], local[src_region], process=False)
+    target_mesh = trimesh.Trimesh(target.vertices, tgt_region, process=False)
+    diag = float(np.linalg.norm(np.ptp(target.vertices[np.unique(tgt_region)], axis=0)))
+    # nricp_sumner scales the source to unit bbox diagonal (trimesh's mesh.scale); express the
+    # engine's closest-point cut-off (max_distance x target diagonal) in those units
+    threshold = CloneSettings().max_distance * diag / source_mesh.scale
+    try:
+        import rtree  # noqa: F401  (trimesh's closest point on faces needs it)
+        use_faces = True
+    except ImportError:
+        use_faces = False
+    start = time.perf_counter()
+    registered = trimesh.registration.nricp_sumner(
+        source_mesh, target_mesh, source_landmarks=local[src_lm],
+        target_positions=target.vertices[tgt_lm], steps=TRIMESH_STEPS,
+        distance_threshold=threshold, use_faces=use_faces)
+    seconds = time.perf_counter() - start
+    full = aligned.copy()
+    full[ids] = registered
+    return {
+        "seconds": round(seconds, 4),
+        "registration_mean_distance_rel": registration_error(full, src_region, target.vertices,
+                                                             tgt_region),
+        "trimesh_version": trimesh.__version__,
+        "parameters": {
+            "steps_wc_wi_ws_wl_wn": TRIMESH_STEPS,
+            "steps_note": "trimesh's default schedule; landmarks are soft (wl=1000)",
+            "distance_threshold": threshold,
+            "distance_threshold_note": "the engine's cut-off, 0.05 x target diagonal, in "
+                                       "nricp_sumner's units (source bbox diagonal = 1)",
+            "use_faces": use_faces,
+            "use_faces_note": "closest points on target triangles (needs rtree)" if use_faces
+            else "rtree not installed: closest target VERTICES (cKDTree), not the surface",
+            "use_vertex_normals": True, "face_pairs_type": "vertex",
+            "source_landmarks": "vertex ids into the source region mesh",
+            "target_positions": "target landmark vertex positions",
+            "source_prealignment": "the engine's similarity transform from the landmarks",
+        },
+    }
+
+
+# ---------------------------------------------------------------------------- driver
+
+def machine_info():
+    info = {"cpu_count": os.cpu_count(), "python": platform.python_version(),
+            "numpy": np.__version__, "scipy": scipy.__version__,
+            "platform": platform.platform(), "cpu_model": None}
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as fh:
+            info["cpu_model"] = next((line.split(":", 1)[1].strip() for line in fh
+                                      if line.startswith("model name")), None)
+    except OSError:
+        pass
+    try:
+        import trimesh
+        info["trimesh"] = trimesh.__version__
+    except ImportError:
+        info["trimesh"] = None
+    return info
+
+
+def engine_revision():
+    """The commit measured, and the engine files that differ from it (figures are of the tree)."""
+    def git(*args):
+        try:
+            proc = subprocess.run(["git", "-C", str(ROOT), *args], capture_output=True, text=True)
+        except OSError:
+            return None
+        return proc.stdout if proc.returncode == 0 else None
+    commit = git("rev-parse", "HEAD")
+    changed = git("status", "--porcelain", "--", "exclone_addon/core")
+    return {"commit": commit and commit.strip(),
+            "uncommitted_core_files": None if changed is None
+            else [line.split(maxsplit=1)[1] for line in changed.splitlines()]}
+
+
+def in_subprocess(case, extra=()):
+    """Run one case in a fresh interpreter; returns its JSON, or {"error": ...}."""
+    command = [sys.executable, str(Path(__file__).resolve()), "--case", case, *extra]
+    started = time.perf_counter()
+    proc = subprocess.run(command, capture_output=True, text=True)
+    if proc.returncode != 0:
+        tail = proc.stderr.strip().splitlines()[-1:] or [f"exit code {proc.returncode}"]
+        return {"error": tail[0]}
+    result = json.loads(proc.stdout)
+    result["wall_seconds_subprocess"] = round(time.perf_counter() - started, 1)
+    return result
+
+
+def targets(cases, compare):
+    """Pass/fail of the issue's targets (None where the figure is missing)."""
+    face = cases.get("face", {})
+    out = {}
+    if "seconds_warm" in face:
+        for state in ("cold", "warm"):
+            times = face[f"seconds_{state}"]
+            out[f"face_setup_under_{TARGET_FACE_SETUP_S:g}s_{state}"] = \
+                times["landmarks_registration_correspondence"] < TARGET_FACE_SETUP_S
+            out[f"face_transfer_under_{TARGET_FACE_TRANSFER_S:g}s_{state}"] = \
+                times["transfer"] < TARGET_FACE_TRANSFER_S
+    if "reduced" in compare:
+        red, aug = compare["reduced"], compare["augmented"]
+        out[f"reduced_{TARGET_REDUCED_SPEEDUP:g}x_faster_than_augmented_no_worse_error"] = bool(
+            compare["augmented_over_reduced_time"] >= TARGET_REDUCED_SPEEDUP
+            and red["registration_mean_distance_rel"] <= aug["registration_mean_distance_rel"])
+    if "trimesh_nricp_sumner" in compare:
+        tri = compare["trimesh_nricp_sumner"]
+        out[f"reduced_{TARGET_TRIMESH_SPEEDUP:g}x_faster_than_trimesh_equal_or_better_error"] = bool(
+            compare["trimesh_over_reduced_time"] >= TARGET_TRIMESH_SPEEDUP
+            and compare["reduced"]["registration_mean_distance_rel"]
+            <= tri["registration_mean_distance_rel"])
+    return out
+
+
+def memory_scaling(cases):
+    rows = [{"case": name, "source_vertices": c["source_vertices"],
+             "target_vertices": c["target_vertices"],
+             "peak_rss_growth_mib": c["peak_rss_growth_mib"],
+             "tracemalloc_peak_mib": c["tracemalloc_peak_mib"]}
+            for name, c in cases.items() if "peak_rss_growth_mib" in c]
+    return sorted(rows, key=lambda r: (r["source_vertices"], r["target_vertices"]))
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path, help="also write the JSON here")
+    parser.add_argument("--quick", action="store_true",
+                        help="face case and reduced/augmented only (no trimesh, no full head)")
+    parser.add_argument("--case", help=argparse.SUPPRESS)      # internal: one case, in-process
+    parser.add_argument("--no-trimesh", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+
+    if args.case:
+        if args.case == "compare":
+            result = run_compare(with_trimesh=not args.no_trimesh)
+        else:
+            result = run_case(args.case)
+        print(json.dumps(result))
+        return 0
+
+    started = time.perf_counter()
+    load_before = os.getloadavg()
+    names = ["face"] if args.quick else ["face", "head", "face_dense_target"]
+    cases = {}
+    for name in names:
+        print(f"bench_clone: case {name} ...", file=sys.stderr, flush=True)
+        cases[name] = in_subprocess(name)
+    print("bench_clone: reduced vs augmented"
+          + ("" if args.quick else " vs trimesh") + " ...", file=sys.stderr, flush=True)
+    compare = in_subprocess("compare", ["--no-trimesh"] if args.quick else [])
+    report = {
+        "machine": machine_info(),
+        "engine": engine_revision(),
+        "quick": args.quick,
+        "cases": cases,
+        "memory_scaling": memory_scaling(cases),
+        "memory_notes": "peak_rss_growth_mib: ru_maxrss after the cold clone minus the resident "
+                        "size after loading the inputs, with the peak reset in between (fresh "
+                        "process per case; includes SuperLU factors and the one-time landmark "
+                        "template); tracemalloc_peak_mib: Python/numpy heap peak of a warm clone "
+                        "(misses SuperLU's own allocations)",
+        "compare": compare,
+        "targets": targets(cases, compare),
+        "wall_seconds": round(time.perf_counter() - started, 1),
+        "load_average_1min_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
+        "load_note": f"{os.cpu_count()} cores; a load above 1 means other processes competed "
+                     "for them during the run and the wall times are inflated",
+    }
+    text = json.dumps(report, indent=2)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
