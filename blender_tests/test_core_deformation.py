@@ -13,7 +13,6 @@ from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
 from exclone_addon.core import deformation
-from exclone_addon.core.correspondence import Correspondence
 from exclone_addon.core.mesh import read_obj, triangle_normals, vertex_adjacency
 from exclone_addon.core.proximity import TriangleSurface, closest_points_on_triangles
 from exclone_addon.core.registration import ReusedOrderingSolver
@@ -177,18 +176,13 @@ def test_triangle_adjacency_on_a_strip():
     np.testing.assert_array_equal(adj, expected)
 
 
-def identity_pairs(n_triangles):
-    ids = np.arange(n_triangles)
-    return Correspondence(ids, ids, np.ones(n_triangles))
-
-
 @pytest.fixture(scope="module")
 def transfers(head):
-    """Transfer onto the head itself, one triangle-to-triangle pair each, per formulation; plus two
-    vertices that no triangle uses."""
+    """Transfer onto the head itself (every triangle takes its own source gradient, weight 1), per
+    formulation; plus two vertices that no triangle uses."""
     v, tris = head
     v = np.vstack([v, [[5.0, 5.0, 5.0], [6.0, 6.0, 6.0]]])
-    return {f: Transfer(v, tris, identity_pairs(len(tris)), len(tris), f) for f in FORMULATIONS}
+    return {f: Transfer(v, tris, np.ones(len(tris)), f) for f in FORMULATIONS}
 
 
 @pytest.mark.parametrize("formulation", FORMULATIONS)
@@ -231,13 +225,11 @@ def test_transfer_of_an_affine_map_onto_the_same_mesh_is_that_map(head, transfer
     np.testing.assert_array_equal(d[:, len(v):], 0.0)
 
 
-def test_transfer_with_no_pair_keeps_the_mesh_rigid(head):
-    """Target triangles with no source triangle get the identity gradient: they do not deform."""
+def test_transfer_ignores_gradients_of_uncovered_triangles(head):
+    """Target triangles with weight 0 take the identity, whatever gradient they are handed."""
     v, tris = head
-    covered = np.arange(len(tris) // 2)
-    pairs = Correspondence(covered, covered, np.ones(len(covered)))
-    transfer = Transfer(v, tris, pairs, len(tris), deformation.REDUCED)
-    gradients = deformation.full_gradients(v, (v + [0.0, 0.0, 0.2])[None], tris)
+    transfer = Transfer(v, tris, np.zeros(len(tris)), deformation.REDUCED)
+    gradients = deformation.full_gradients(v, (1.5 * v)[None], tris)
     d = transfer(gradients, np.full((1, 3, 3), [0.0, 0.0, 0.2]), np.array([0, 1, 2]))
     np.testing.assert_allclose(d[0], np.broadcast_to([0.0, 0.0, 0.2], v.shape), atol=1e-9)
 
