@@ -3,16 +3,16 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
+import scipy.sparse as sp
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from . import deformation
-from .correspondence import triangle_correspondence
+from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
 from .errors import ExCloneError
 from .landmarks import automatic_landmarks
 from .mesh import check_mesh, triangle_normals, valid_triangles, vertex_normals, vertex_parts
 from .orientation import face_frame
-from .proximity import TriangleSurface, interpolate
 from .registration import Schedule, register, similarity_icp
 from .transfer import Transfer
 
@@ -22,7 +22,8 @@ class CloneSettings:
     preset: str = "balanced"          # "fast" | "balanced" | "precise": registration schedule
     formulation: str = "reduced"      # "reduced" (2-edge QR gradient) | "augmented" (4th vertex)
     max_distance: float = 0.05        # correspondence / closest-point cut-off, x target diagonal
-    landmark_weight: float = 100     # automatic landmarks are soft, this much per landmark
+    landmark_weight: float = 0.1      # automatic landmarks are soft: a light pull per landmark
+    correspondence: str = "vertex"    # "vertex" (vertex map, pairs elsewhere) | "triangle" (pairs only)
 
 
 @dataclass
@@ -176,22 +177,47 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
             f"registration did not converge: only {100 * reg.valid_fraction:.0f}% of the source "
             "face found the target surface; check the landmarks")
 
-    # 3. Correspondence
+    # 3. Correspondence: the vertex map where plausible, triangle pairs elsewhere
     report(0.7, "correspondence")
-    corr = triangle_correspondence(reg.vertices, src_region, tgt_v, tgt_region,
-                                   settings.max_distance * diag, src_sign, tgt_sign)
-    if len(corr.weights) == 0:
+    max_distance = settings.max_distance * diag
+    tgt_normals = tgt_sign * vertex_normals(tgt_v, tgt_region)
+    vertex_map = map_vertices(reg.vertices, src_region, tgt_v, tgt_normals, np.unique(tgt_region),
+                              max_distance, src_sign)
+    if settings.correspondence == "vertex":
+        mapped = mapped_triangles(vertex_map, reg.vertices, src_region, tgt_v, tgt_region,
+                                  src_sign, tgt_sign)
+    else:
+        mapped = np.zeros(len(tgt_region), dtype=bool)
+    pairs = triangle_correspondence(reg.vertices, src_region, tgt_v, tgt_region, max_distance,
+                                    src_sign, tgt_sign).matrix(len(tgt_region), len(src_region))
+    pairs = sp.diags((~mapped).astype(float)) @ pairs                 # only where the map is not
+    pair_weight = np.asarray(pairs.sum(axis=1)).ravel()
+    weights = np.where(mapped, 1.0, pair_weight)
+    if not np.any(weights > 0):
         raise ExCloneError("no triangle of the target corresponds to the source; check the landmarks")
     lap("correspondence")
 
-    # 4. Transfer: gradients of the aligned source, one factorisation for all expressions
+    # 4. Transfer: source gradients per target triangle, one factorisation for all expressions
     report(0.8, "transfer")
     aligned_deltas = deltas @ rot.T * scale
-    gradients = deformation.full_gradients(aligned, aligned + aligned_deltas, src_region)
-    transfer = Transfer(tgt_v, tgt_region, corr, len(src_region), settings.formulation)
-    anchors, anchor_disp = _anchor_points(reg.vertices, src_region, tgt_v, tgt_region,
-                                          aligned_deltas, settings.max_distance * diag)
-    result = transfer(gradients, anchor_disp, anchors)
+    per_vertex = np.moveaxis(aligned_deltas, 0, 1)                              # (n_s, E, 3)
+    wanted = np.zeros((len(deltas), len(tgt_region), 3, 3))
+    if mapped.any():
+        corners = tgt_region[mapped].ravel()
+        rest = vertex_map.sample(aligned, src_region, corners).reshape(-1, 3, 3)
+        moved = vertex_map.sample(per_vertex, src_region, corners)              # (3m, E, 3)
+        moved = np.moveaxis(moved, 1, 0).reshape(len(deltas), -1, 3, 3) + rest
+        wanted[:, mapped] = deformation.corner_gradients(rest, moved)
+    paired = ~mapped & (pair_weight > 0)
+    if paired.any():
+        source_gradients = deformation.full_gradients(aligned, aligned + aligned_deltas, src_region)
+        flat = np.moveaxis(source_gradients, 0, 1).reshape(len(src_region), -1)     # (Ts, E*9)
+        mean = (pairs[paired] @ flat) / pair_weight[paired, None]
+        wanted[:, paired] = np.moveaxis(mean.reshape(-1, len(deltas), 3, 3), 1, 0)
+    transfer = Transfer(tgt_v, tgt_region, weights, settings.formulation)
+    anchors = np.flatnonzero(vertex_map.valid)
+    anchor_disp = np.moveaxis(vertex_map.sample(per_vertex, src_region, anchors), 1, 0)
+    result = transfer(wanted, anchor_disp, anchors)
     _follow_degenerate(result, tgt_v, tgt_all, tgt_region)
     lap("transfer")
     if not np.all(np.isfinite(result)):
@@ -203,7 +229,8 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
         "registration_mean_distance_rel": reg.mean_distance / diag,
         "registration_valid_fraction": reg.valid_fraction,
         "registration_history_rel": [h / diag for h in reg.history],
-        "correspondence_coverage": corr.coverage(len(tgt_region)),
+        "correspondence_coverage": float(np.mean(weights > 0)),
+        "correspondence_vertex_mapped": float(np.mean(mapped)),
         "landmark_count": int(len(src_lm)),
         "similarity_scale": scale,
         "target_diagonal": diag,
@@ -211,15 +238,6 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     report(1.0, "done")
     return CloneResult(list(names), result, src_lm, tgt_lm, landmark_names, reg.vertices,
                        timings, quality)
-
-
-def _anchor_points(registered, src_tris, tgt_v, tgt_tris, aligned_deltas, max_distance):
-    """Target vertices that lie on the registered source, and the source's displacement there."""
-    ids = np.unique(tgt_tris)
-    _, tri, dist, bary = TriangleSurface(registered, src_tris).closest(tgt_v[ids])
-    near = dist < max_distance
-    disp = interpolate(np.moveaxis(aligned_deltas, 0, 1), src_tris, tri[near], bary[near])
-    return ids[near], np.moveaxis(disp, 1, 0)
 
 
 def _follow_degenerate(result, vertices, all_tris, used_tris):

@@ -1,6 +1,14 @@
-"""Triangle correspondence between the registered source and the target (METHOD.md).
+"""Correspondence between the registered source and the target.
 
-Pairs are found in both directions so every target triangle in the covered region gets a source
+Vertex map (ExClone's default): every target vertex is located on the registered source surface
+(triangle + barycentric coordinates). A target triangle whose three corners map plausibly (same
+facing, no more than 3x stretched or shrunk) takes the gradient of its image triangle on the
+source, sampled at exactly its own resolution: exact for identical faces and much better than
+averaging source gradients where the deformation varies inside one target triangle (eyelids,
+mouth corners).
+
+Triangle pairs (the method's, METHOD.md), used where the vertex map is not plausible: pairs are
+found in both directions so every target triangle in the covered region gets a source
 triangle: each target triangle looks up the source surface at several points inside it (the
 centroid alone costs accuracy where triangles are long, e.g. eyelids and mouth corners), and each
 source triangle's centroid looks up the target surface. A pair counts only if the two triangles
@@ -13,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .mesh import triangle_normals
-from .proximity import TriangleSurface
+from .proximity import TriangleSurface, interpolate
 
 # Barycentric sample points inside a triangle: the centroid and one towards each corner.
 SAMPLES = np.array([[1, 1, 1], [4, 1, 1], [1, 4, 1], [1, 1, 4]], dtype=float)
@@ -60,3 +68,53 @@ def triangle_correspondence(source_vertices, source_triangles, target_vertices, 
     # each target sample carries 1/k of its triangle; a source centroid weighs like one sample
     weights = np.r_[np.full(len(t_from), 1.0 / len(SAMPLES)), np.full(len(s_from), 1.0 / len(SAMPLES))]
     return Correspondence(np.r_[t_from, t_to], np.r_[s_to, s_from], weights)
+
+
+@dataclass
+class VertexMap:
+    triangle: np.ndarray     # (n,) source triangle under each target vertex (-1 if none)
+    bary: np.ndarray         # (n, 3) barycentric coordinates in it
+    valid: np.ndarray        # (n,) bool
+
+    def sample(self, values, source_triangles, ids=None):
+        """Per-source-vertex values (n_s, ...) at the mapped target vertices `ids` (default: valid)."""
+        ids = np.flatnonzero(self.valid) if ids is None else ids
+        return interpolate(values, source_triangles, self.triangle[ids], self.bary[ids])
+
+
+def map_vertices(source_vertices, source_triangles, target_vertices, target_normals, target_ids,
+                 max_distance, source_normal_sign=1.0):
+    """Locate target vertices `target_ids` on the registered source surface.
+
+    target_normals: (n, 3) outward target vertex normals. A vertex maps if the closest source
+    point is nearer than max_distance and faces the same way.
+    """
+    n = len(target_vertices)
+    triangle = np.full(n, -1)
+    bary = np.zeros((n, 3))
+    valid = np.zeros(n, dtype=bool)
+    surface = TriangleSurface(source_vertices, source_triangles)
+    _, tri, dist, b = surface.closest(target_vertices[target_ids])
+    src_n = source_normal_sign * triangle_normals(source_vertices, source_triangles)[tri]
+    ok = (dist < max_distance) & (np.einsum("ij,ij->i", src_n, target_normals[target_ids]) > 0)
+    triangle[target_ids], bary[target_ids], valid[target_ids] = tri, b, ok
+    return VertexMap(triangle, bary, valid)
+
+
+def mapped_triangles(vertex_map, source_vertices, source_triangles, target_vertices,
+                     target_triangles, source_normal_sign=1.0, target_normal_sign=1.0, stretch=3.0):
+    """Target triangles whose corners' images on the source form a plausible triangle."""
+    ok = vertex_map.valid[target_triangles].all(axis=1)
+    corners = np.zeros(target_triangles.shape + (3,))
+    ids = target_triangles[ok]
+    corners[ok] = vertex_map.sample(source_vertices, source_triangles, ids.ravel()).reshape(-1, 3, 3)
+    image_edges = np.linalg.norm(corners[:, [1, 2, 0]] - corners, axis=2)
+    own = target_vertices[target_triangles]
+    own_edges = np.linalg.norm(own[:, [1, 2, 0]] - own, axis=2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = image_edges / own_edges
+    ok &= np.all((ratio > 1 / stretch) & (ratio < stretch), axis=1)
+    image_n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    own_n = np.cross(own[:, 1] - own[:, 0], own[:, 2] - own[:, 0])
+    ok &= source_normal_sign * target_normal_sign * np.einsum("ij,ij->i", image_n, own_n) > 0
+    return ok

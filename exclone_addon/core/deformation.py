@@ -24,12 +24,23 @@ _EDGES_3 = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
 _EDGES_4 = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
+def _fourth_corner(corners):
+    """Sumner's 4th vertex for triangles given as corners (..., 3, 3): v1 + n / sqrt(|n|)."""
+    n = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :])
+    length = np.linalg.norm(n, axis=-1, keepdims=True)
+    return corners[..., 0, :] + np.divide(n, np.sqrt(length), out=np.zeros_like(n), where=length > 0)
+
+
 def fourth_vertices(vertices, triangles):
     """Sumner's 4th vertex per triangle: v1 + n / sqrt(|n|), n the unnormalised normal."""
-    v = vertices[triangles]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    return v[:, 0] + np.divide(n, np.sqrt(length), out=np.zeros_like(n), where=length > 0)
+    return _fourth_corner(vertices[triangles])
+
+
+def _augmented_edges(corners):
+    """(..., 3, 3) edge matrices [v2-v1, v3-v1, v4-v1] as columns."""
+    v4 = _fourth_corner(corners)
+    return np.stack([corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :],
+                     v4 - corners[..., 0, :]], axis=-1)
 
 
 def edge_pseudo_inverses(vertices, triangles, rel_eps=1e-10):
@@ -50,13 +61,14 @@ def edge_pseudo_inverses(vertices, triangles, rel_eps=1e-10):
 
 def augmented_inverses(vertices, triangles, rel_eps=1e-10):
     """V^-1 of every triangle's 3x3 edge matrix with the 4th vertex, (T, 3, 3); zeros if degenerate."""
-    v = vertices[triangles]
-    v4 = fourth_vertices(vertices, triangles)
-    edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], v4 - v[:, 0]], axis=2)
+    return _inverses(_augmented_edges(vertices[triangles]), rel_eps)
+
+
+def _inverses(edges, rel_eps=1e-10):
     det = np.linalg.det(edges)
-    scale = np.linalg.norm(edges, axis=(1, 2)) ** 3
+    scale = np.linalg.norm(edges, axis=(-2, -1)) ** 3
     ok = np.abs(det) > rel_eps * np.maximum(scale, 1e-300)
-    inv = np.linalg.inv(np.where(ok[:, None, None], edges, np.eye(3)))
+    inv = np.linalg.inv(np.where(ok[..., None, None], edges, np.eye(3)))
     inv[~ok] = 0.0
     return inv, ok
 
@@ -95,25 +107,20 @@ def unknowns_of(vertices, triangles, formulation=REDUCED):
     return vertices
 
 
-def full_gradients(rest, deformed, triangles):
-    """Sumner's full 3x3 gradients Q_j (T, 3, 3) taking `rest` to each of `deformed`.
+def corner_gradients(rest_corners, deformed_corners):
+    """Sumner's full 3x3 gradients taking triangles `rest_corners` (T, 3, 3) to each of
+    `deformed_corners` (E, T, 3, 3); returns (E, T, 3, 3), zeros for degenerate rest triangles.
 
-    deformed: (n, 3) or (E, n, 3). Used for the SOURCE of a transfer: the full gradient also
-    says how the normal direction moves, which matters when the target triangle is tilted
-    relative to the source one.
+    Used for the SOURCE of a transfer: the full gradient also says how the normal direction
+    moves, which matters when the target triangle is tilted relative to the source one.
     """
-    inv, _ = augmented_inverses(rest, triangles)
-    batch = np.asarray(deformed)
-    single = batch.ndim == 2
-    if single:
-        batch = batch[None]
-    out = np.empty((len(batch), len(triangles), 3, 3))
-    for k, shape in enumerate(batch):
-        v = shape[triangles]
-        v4 = fourth_vertices(shape, triangles)
-        edges = np.stack([v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], v4 - v[:, 0]], axis=2)
-        out[k] = edges @ inv
-    return out[0] if single else out
+    inv, _ = _inverses(_augmented_edges(rest_corners))
+    return _augmented_edges(deformed_corners) @ inv
+
+
+def full_gradients(rest, deformed, triangles):
+    """corner_gradients of a mesh: rest (n, 3) to deformed (n, 3) or (E, n, 3) -> (T|E,T, 3, 3)."""
+    return corner_gradients(rest[triangles], np.asarray(deformed)[..., triangles, :])
 
 
 def stacked_identity(n_triangles):

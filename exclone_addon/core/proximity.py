@@ -79,3 +79,33 @@ def interpolate(values, triangles, triangle_ids, bary):
     v = values[corners]                                             # (m, 3, ...)
     weights = bary.reshape(bary.shape + (1,) * (v.ndim - 2))
     return (weights * v).sum(axis=1)
+
+
+class SegmentSet:
+    """Line segments (e.g. a mesh's open border edges) that answer closest-point queries."""
+
+    def __init__(self, vertices, edges, k=8):
+        self.vertices = np.asarray(vertices, dtype=np.float64)
+        self.edges = np.asarray(edges)
+        self.k = min(k, len(self.edges))
+        self.tree = cKDTree(self.vertices[self.edges].mean(axis=1)) if len(self.edges) else None
+
+    def closest(self, points):
+        """Returns (closest points (m,3), edge ids (m,), distances (m,), weight of the 2nd end (m,))."""
+        points = np.asarray(points, dtype=np.float64)
+        m = len(points)
+        if self.tree is None:
+            return np.zeros((m, 3)), np.full(m, -1), np.full(m, np.inf), np.zeros(m)
+        _, cand = self.tree.query(points, k=self.k)
+        cand = cand.reshape(m, -1)
+        a = self.vertices[self.edges[cand, 0]]
+        b = self.vertices[self.edges[cand, 1]]
+        ab = b - a
+        length2 = np.einsum("ijk,ijk->ij", ab, ab)
+        t = np.einsum("ijk,ijk->ij", points[:, None] - a, ab) / np.where(length2 > 0, length2, 1.0)
+        t = np.clip(t, 0.0, 1.0)
+        pts = a + t[..., None] * ab
+        dist = np.linalg.norm(pts - points[:, None], axis=2)
+        best = np.argmin(dist, axis=1)
+        rows = np.arange(m)
+        return pts[rows, best], cand[rows, best], dist[rows, best], t[rows, best]

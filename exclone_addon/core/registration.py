@@ -13,8 +13,8 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import splu
 
 from . import deformation
-from .mesh import boundary_vertices, vertex_normals
-from .proximity import TriangleSurface, interpolate
+from .mesh import boundary_edges, boundary_vertices, vertex_normals
+from .proximity import SegmentSet, TriangleSurface, interpolate
 
 # Closest-point weights per step after the landmark-only solve; w_S = 1, w_I = 0.001 (the thesis').
 PRESETS = {
@@ -30,6 +30,7 @@ class Schedule:
     smooth_weight: float = 1.0
     identity_weight: float = 0.001
     max_distance: float = 0.05        # closest points further than this x target diagonal are ignored
+    border_distance: float = 0.015    # open borders match borders closer than this x target diagonal
     # None: landmarks are hard constraints (user-placed ones). A number: soft, with this weight
     # per landmark against a closest-point weight of 1 per vertex (automatic ones, which can be
     # off by a few percent and must not pin the fit to their error).
@@ -73,15 +74,26 @@ class ReusedOrderingSolver:
         return lu.solve(rhs[p])[inv]
 
 
-def closest_valid_points(points, normals, surface, surface_normals, border, max_distance):
-    """Closest target surface points whose normal is within 90 degrees of the source normal,
-    not further than max_distance and not on the target's open border.
+def closest_valid_points(points, normals, on_border, surface, surface_normals, border,
+                         border_edges, max_distance, border_distance):
+    """Closest target points for source points.
 
-    Returns (closest points, valid, distances)."""
+    Interior source points take the closest surface point whose normal is within 90 degrees,
+    not further than max_distance and not on the target's open border. Source points on their
+    own open border (eye, mouth, outer edge) take the closest point on the target's border
+    edges instead, if it is nearer than border_distance: borders match borders, so eyelid
+    margins and lips do not slide. Returns (closest points, valid, distances).
+    """
     closest, tri, dist, bary = surface.closest(points)
     n_target = interpolate(surface_normals, surface.triangles, tri, bary)
     valid = (np.einsum("ij,ij->i", n_target, normals) > 0) & (dist < max_distance)
     valid &= ~border[surface.triangles[tri]].any(axis=1)
+    if on_border.any():
+        b_closest, _, b_dist, _ = border_edges.closest(points[on_border])
+        closest[on_border] = b_closest
+        dist = dist.copy()
+        dist[on_border] = b_dist
+        valid[on_border] = b_dist < border_distance
     return closest, valid, dist
 
 
@@ -173,12 +185,17 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
     border[boundary_vertices(target_triangles)] = True
     source_border = np.zeros(n, dtype=bool)
     source_border[boundary_vertices(source_triangles)] = True
+    target_border_edges = SegmentSet(target_vertices, boundary_edges(target_triangles))
+    source_border_edges = boundary_edges(source_triangles)
     # Target points pull the source too (symmetric closest points): without it the source can
     # settle on part of the target and leave the rest uncovered. Each target vertex weighs its
     # share of the surface in units of a source vertex's share, so density does not matter.
-    target_ids = np.unique(target_triangles)
-    target_share = _vertex_areas(target_vertices, target_triangles)[target_ids]
-    target_share /= _vertex_areas(source_vertices, source_triangles)[region].mean()
+    target_ids = np.setdiff1d(np.unique(target_triangles), boundary_vertices(target_triangles))
+    source_area = _vertex_areas(source_vertices, source_triangles)[region].mean()
+    target_share = _vertex_areas(target_vertices, target_triangles)[target_ids] / source_area
+    # border vertices weigh their share of the border's length in source edge lengths (= 1)
+    target_border_ids = boundary_vertices(target_triangles)
+    target_border_share = _border_lengths(target_vertices, boundary_edges(target_triangles))[target_border_ids]
     solver = ReusedOrderingSolver()
     history = []
     # the landmark-only solve starts a fit from hard landmarks; soft ones start from the surfaces
@@ -192,8 +209,9 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
         if w_c > 0:
             normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
             closest, valid_region, distance = closest_valid_points(
-                x[region], normals[region], surface, target_normals, border,
-                schedule.max_distance * diag)
+                x[region], normals[region], source_border[region], surface, target_normals,
+                border, target_border_edges, schedule.max_distance * diag,
+                schedule.border_distance * diag)
             valid = np.zeros(n, dtype=bool)
             valid[region[valid_region]] = True
             targets = np.zeros((n_unknowns, 3))
@@ -205,6 +223,12 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
                                           source_border, target_vertices[target_ids],
                                           target_normals[target_ids], target_share,
                                           schedule.max_distance * diag, n_unknowns)
+            border_pull, border_rhs = _border_pull(x[:n], source_border_edges,
+                                                   target_vertices[target_border_ids],
+                                                   target_border_share,
+                                                   schedule.border_distance * diag, n_unknowns)
+            pull = pull + border_pull
+            pull_rhs = pull_rhs + border_rhs
             matrix = (base + sp.diags(data) + w_c * pull).tocsr()
             rhs += w_c * pull_rhs
         else:
@@ -252,6 +276,25 @@ def _target_pull(source, source_triangles, source_sign, source_border, points, p
     ok = (dist < max_distance) & (facing > 0) & ~source_border[corners].any(axis=1)
     rows = np.repeat(np.flatnonzero(ok), 3)
     b = sp.csr_matrix((bary[ok].ravel(), (rows, corners[ok].ravel())),
+                      shape=(len(points), n_unknowns))
+    w = sp.diags(np.where(ok, weights, 0.0))
+    return (b.T @ w @ b), b.T @ (w @ points)
+
+
+def _border_lengths(vertices, edges):
+    """Half the length of the border edges at each vertex."""
+    length = np.linalg.norm(vertices[edges[:, 1]] - vertices[edges[:, 0]], axis=1) / 2
+    return np.bincount(edges.ravel(), np.repeat(length, 2), minlength=len(vertices))
+
+
+def _border_pull(source, source_border_edges, points, weights, max_distance, n_unknowns):
+    """Like _target_pull, for the target's border vertices onto the source's border edges."""
+    segments = SegmentSet(source, source_border_edges)
+    _, edge, dist, t = segments.closest(points)
+    ok = dist < max_distance
+    ends = source_border_edges[edge[ok]]
+    rows = np.repeat(np.flatnonzero(ok), 2)
+    b = sp.csr_matrix((np.stack([1 - t[ok], t[ok]], axis=1).ravel(), (rows, ends.ravel())),
                       shape=(len(points), n_unknowns))
     w = sp.diags(np.where(ok, weights, 0.0))
     return (b.T @ w @ b), b.T @ (w @ points)

@@ -1,7 +1,8 @@
 """Deformation transfer (Sumner & Popovic 2004) with one factorisation for all expressions.
 
-For target displacements d: min sum over pairs w ||S_s - T_t(x0 + d)||_F^2, plus identity
-gradients on target triangles with no pair (they follow without deforming). The normal matrix
+For target displacements d: min sum over target triangles w_t ||S_t - T_t(x0 + d)||_F^2, where
+S_t is the source gradient the correspondence gives triangle t (weight w_t), and the identity
+(weight 1) on target triangles the correspondence does not cover (they follow without deforming). The normal matrix
 depends on the target neutral and the pairs only, so it is factorised once and every expression
 is a back-substitution; all expressions go through as one multi-column right-hand side.
 
@@ -20,16 +21,14 @@ from .mesh import vertex_adjacency
 
 
 class Transfer:
-    def __init__(self, target_vertices, target_triangles, correspondence, n_source_triangles,
-                 formulation=deformation.REDUCED, uncovered_weight=1.0):
+    def __init__(self, target_vertices, target_triangles, weights,
+                 formulation=deformation.REDUCED):
+        """weights: (T,) per target triangle; 0 marks a triangle with no source gradient."""
         self.n = len(target_vertices)
-        t = len(target_triangles)
         self.grad, _ = deformation.gradient_operator(target_vertices, target_triangles, formulation)
         self.rest = deformation.unknowns_of(target_vertices, target_triangles, formulation)
-        self.pairs = correspondence.matrix(t, n_source_triangles)               # (Tt x Ts)
-        covered_weight = np.asarray(self.pairs.sum(axis=1)).ravel()
-        self.uncovered = covered_weight == 0
-        self.row_weight = np.where(self.uncovered, uncovered_weight, covered_weight)
+        self.uncovered = np.asarray(weights) <= 0
+        self.row_weight = np.where(self.uncovered, 1.0, weights)
         w_rows = sp.diags(np.repeat(self.row_weight, 3))
         normal = (self.grad.T @ w_rows @ self.grad).tocsc()
         # a whisper of regularisation keeps the per-part translations definite; they are set
@@ -38,24 +37,24 @@ class Transfer:
         self.factor = splu(normal + eps * sp.identity(normal.shape[0], format="csc"),
                            permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                            options={"SymmetricMode": True})
-        self.rest_gradients = self.grad @ self.rest                             # (3Tt, 3)
-        self.uncovered_weight = uncovered_weight
+        self.rest_gradients = self.grad @ self.rest                             # (3T, 3)
         _, self.parts = connected_components(vertex_adjacency(self.n, target_triangles),
                                              directed=False)
 
-    def __call__(self, source_gradients, anchor_displacements=None, anchor_vertices=None):
-        """source_gradients: (E, Ts, 3, 3) full gradients of the source expressions.
+    def __call__(self, target_gradients, anchor_displacements=None, anchor_vertices=None):
+        """target_gradients: (E, T, 3, 3) the source gradient each target triangle should take
+        (ignored where uncovered).
 
         anchor_displacements: (E, k, 3) the source's displacement at the corresponding points of
         target vertices anchor_vertices (k,), to set each covered part's translation.
         Returns target displacements (E, n, 3).
         """
-        e, ts = source_gradients.shape[:2]
-        flat = source_gradients.reshape(e, ts, 9).transpose(1, 0, 2).reshape(ts, e * 9)
-        accumulated = (self.pairs @ flat).reshape(-1, e, 3, 3).transpose(1, 0, 2, 3)  # (E,Tt,3,3)
-        accumulated[:, self.uncovered] = self.uncovered_weight * np.eye(3)
-        target = deformation.stack_gradients(accumulated)                      # (E, 3Tt, 3)
-        residual = target - np.repeat(self.row_weight, 3)[:, None] * self.rest_gradients
+        e = len(target_gradients)
+        wanted = np.array(target_gradients, dtype=np.float64)
+        wanted[:, self.uncovered] = np.eye(3)
+        stacked = deformation.stack_gradients(wanted)                           # (E, 3T, 3)
+        weights = np.repeat(self.row_weight, 3)[:, None]
+        residual = weights * (stacked - self.rest_gradients)
         rhs = self.grad.T @ residual.transpose(1, 0, 2).reshape(-1, e * 3)     # (N, 3E)
         solution = self.factor.solve(np.ascontiguousarray(rhs))
         d = solution.reshape(-1, e, 3).transpose(1, 0, 2)[:, : self.n]         # (E, n, 3)
