@@ -293,7 +293,11 @@ def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
 def machine_info():
     info = {"cpu_count": os.cpu_count(), "python": platform.python_version(),
             "numpy": np.__version__, "scipy": scipy.__version__,
-            "platform": platform.platform(), "cpu_model": None}
+            "platform": platform.platform(), "cpu_model": None,
+            # BLAS threads change the sparse solves' times a lot on 2 busy cores
+            "blas_thread_env": {k: os.environ[k] for k in ("OPENBLAS_NUM_THREADS",
+                                                           "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+                                if k in os.environ}}
     try:
         with open("/proc/cpuinfo", encoding="utf-8") as fh:
             info["cpu_model"] = next((line.split(":", 1)[1].strip() for line in fh
