@@ -71,61 +71,58 @@ def _profile(segments, walk_axis, bin_size):
     return centres, zmax, pts
 
 
-def _walk(centres, zbin, pts, start, direction, prominence, smooth_bins, cliff=None):
+def _walk(centres, zbin, pts, start, direction, prominence, smooth_bins):
     """Peaks and valleys of z met walking from `start` in `direction` (+1/-1) along a profile.
 
     Returns (peak points, valley points) in walking order; gaps (a hole such as the mouth) are
-    bridged by interpolation, not stopped at. With `cliff`, the walk ends where z drops by more
-    than that between samples (the edge of an open eye socket): if no valley came before it,
-    the edge itself counts as the valley.
+    bridged by interpolation, not stopped at.
     """
     keep = ~np.isnan(zbin)
     if keep.sum() < 5:
         return [], []
-    z = np.interp(centres, centres[keep], zbin[keep])
-    z = uniform_filter1d(z, smooth_bins, mode="nearest")
+    z = uniform_filter1d(np.interp(centres, centres[keep], zbin[keep]), smooth_bins, mode="nearest")
     ahead = np.flatnonzero((centres - start) * direction > 0)
     if direction < 0:
         ahead = ahead[::-1]
     if len(ahead) < 3:
         return [], []
-    seq = z[ahead]
     real = np.flatnonzero(keep[ahead])
-    edge = None
-    if cliff is not None:
-        drops = np.flatnonzero(np.diff(zbin[ahead]) < -cliff)
-        if len(drops):
-            edge = drops[0]
-            seq = seq[: edge + 1]
 
     def nearest_real(k):
         return pts[ahead[real[np.argmin(np.abs(real - k))]]]
 
-    peaks, _ = find_peaks(seq, prominence=prominence)
-    valleys, _ = find_peaks(-seq, prominence=prominence)
-    valleys = list(valleys)
-    if edge is not None and not valleys:
-        valleys = [edge]
+    peaks, _ = find_peaks(z[ahead], prominence=prominence)
+    valleys, _ = find_peaks(-z[ahead], prominence=prominence)
     return [nearest_real(k) for k in peaks], [nearest_real(k) for k in valleys]
 
 
-def _sharpest_bend(profile, start, direction, near, far, smooth_bins):
-    """The most concave point (largest d2z) at walk distance [near, far] from `start`, or None.
-
-    A crease is a valley on some faces and only a knee (the slope flattens) on others; both are
-    where the profile bends up the most.
-    """
+def _crease(profile, start, direction, near, far, prominence, smooth_bins, cliff=None):
+    """A crease at walk distance [near, far] from `start`: the first z valley there; else, with
+    `cliff`, the edge where z drops away by more than that between samples (an open eye socket);
+    else the most concave bend (a crease that is only a knee on this face). None if no data."""
     centres, z, pts = profile
     keep = ~np.isnan(z)
     dist = (centres - start) * direction
     window = np.flatnonzero((dist >= near) & (dist <= far))
+    if direction < 0:
+        window = window[::-1]
     if keep.sum() < 5 or len(window) < 3:
         return None
     zs = uniform_filter1d(np.interp(centres, centres[keep], z[keep]), smooth_bins, mode="nearest")
-    bend = np.gradient(np.gradient(zs))
-    k = window[np.argmax(bend[window])]
     real = np.flatnonzero(keep)
-    return pts[real[np.argmin(np.abs(real - k))]]
+
+    def nearest_real(k):
+        return pts[real[np.argmin(np.abs(real - k))]]
+
+    valleys, _ = find_peaks(-zs[window], prominence=prominence)
+    if cliff is not None:
+        drops = np.flatnonzero(np.diff(z[window]) < -cliff)
+        if len(drops) and (not len(valleys) or drops[0] < valleys[0]):
+            return nearest_real(window[drops[0]])
+    if len(valleys):
+        return nearest_real(window[valleys[0]])
+    bend = np.gradient(np.gradient(zs))
+    return nearest_real(window[np.argmax(bend[window])])
 
 
 def _front_most(profile, low, high):
@@ -166,10 +163,11 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     # Sections keep to the face side (in front of the ears' depth).
     front_tris = triangles[np.all(q[triangles, 2] > tip[2] - 0.3 * height, axis=1)]
     sag = _profile(plane_section(q, front_tris, 0, 0.0), 1, bin_size)
-    _, up_valleys = _walk(*sag, tip[1], +1, prominence, smooth)
+    # nose bridge (sellion): the crease between nose and forehead, a nose's length above the tip
+    bridge = _crease(sag, tip[1], +1, 0.04 * diag, 0.2 * diag, prominence, smooth)
+    if bridge is not None:
+        found["nose_bridge"] = bridge
     down_peaks, down_valleys = _walk(*sag, tip[1], -1, prominence, smooth)
-    if up_valleys:
-        found["nose_bridge"] = up_valleys[0]
     if down_valleys:
         found["subnasal"] = down_valleys[0]
         below = [p for p in down_peaks if p[1] < down_valleys[0][1]]
@@ -184,26 +182,27 @@ def heuristic_landmarks(vertices, triangles, frame=None):
         if chin is not None:
             found["chin"] = chin
 
-    # Horizontal profiles: alar creases beside the nose, inner eye corners beside the bridge.
-    def sideways(y, name_left, name_right):
-        prof = _profile(plane_section(q, front_tris, 1, y), 0, bin_size)
-        for direction, name in ((+1, name_left), (-1, name_right)):
-            _, valleys = _walk(*prof, 0.0, direction, prominence, smooth, cliff=0.01 * diag)
-            if valleys:
-                found[name] = valleys[0]
-
+    # Horizontal profiles: inner eye corners beside the bridge, alar creases beside the nose,
+    # at nose-length-scaled distances from the midline.
     if "nose_bridge" in found:
-        sideways(found["nose_bridge"][1], "eye_inner_left", "eye_inner_right")
-        # Alar creases: just below the tip's height, where a horizontal cut leaves the nose
-        # wing for the cheek. The first valley would be the nostril beside the columella, so
-        # take the sharpest bend at a nose-wing-like distance.
         nose_length = found["nose_bridge"][1] - tip[1]
+        # the corners sit at or somewhat below the bridge: cut at several heights, keep the
+        # deepest crease on each side
+        eye_cuts = [_profile(plane_section(q, front_tris, 1, found["nose_bridge"][1] - k * nose_length),
+                             0, bin_size) for k in np.linspace(0.0, 0.5, 6)]
+        # Alar creases: just below the tip's height, where a cut leaves the nose wing for the
+        # cheek (not the nostril beside the columella, nearer the midline).
         alar = _profile(plane_section(q, front_tris, 1, tip[1] - 0.1 * nose_length), 0, bin_size)
-        for direction, name in ((+1, "alar_left"), (-1, "alar_right")):
-            point = _sharpest_bend(alar, 0.0, direction, 0.2 * nose_length, 0.9 * nose_length,
-                                   2 * smooth)
-            if point is not None:
-                found[name] = point
+        for direction, side in ((+1, "left"), (-1, "right")):
+            corners = [_crease(cut, 0.0, direction, 0.15 * nose_length, 0.9 * nose_length,
+                               prominence, smooth, cliff=0.01 * diag) for cut in eye_cuts]
+            corners = [c for c in corners if c is not None]
+            corner = min(corners, key=lambda c: c[2]) if corners else None
+            crease = _crease(alar, 0.0, direction, 0.2 * nose_length, 0.9 * nose_length,
+                             np.inf, 2 * smooth)
+            for name, point in ((f"eye_inner_{side}", corner), (f"alar_{side}", crease)):
+                if point is not None:
+                    found[name] = point
     names = list(found)
     _, ids = cKDTree(q[used]).query(np.array([found[n] for n in names]))
     return {n: int(used[i]) for n, i in zip(names, ids)}

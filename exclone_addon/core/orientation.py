@@ -17,9 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from .errors import ExCloneError
-from .mesh import boundary_vertices, triangle_areas
+from .mesh import boundary_vertices, triangle_areas, triangle_normals
+from .proximity import TriangleSurface
 
 _MANUAL = "place the landmarks by hand (or give --landmarks)"
 
@@ -39,7 +41,7 @@ class FaceFrame:
 
 
 def surface_samples(vertices, triangles, count=6000, seed=0):
-    """Area-uniform random points on the surface.
+    """Area-uniform random points on the surface and their triangles' unit normals.
 
     Deterministic for a seed and equivariant: a rotated or scaled copy of a mesh gets the same
     points on its surface.
@@ -53,7 +55,8 @@ def surface_samples(vertices, triangles, count=6000, seed=0):
     r1, r2 = rng.random(count), rng.random(count)
     s = np.sqrt(r1)
     w = np.stack([1 - s, s * (1 - r2), s * r2], axis=1)
-    return np.einsum("ij,ijk->ik", w, vertices[triangles[tri]])
+    points = np.einsum("ij,ijk->ik", w, vertices[triangles[tri]])
+    return points, triangle_normals(vertices, triangles[tri])
 
 
 def _fibonacci_directions(count):
@@ -68,8 +71,13 @@ def _mirror(points, normal, offset):
     return points - 2.0 * (points @ normal - offset)[:, None] * normal
 
 
-def symmetry_plane(samples, diagonal, candidates=600):
-    """Plane (unit normal, offset) with normal . x = offset that best mirrors the samples onto themselves."""
+def symmetry_plane(samples, diagonal, surface, candidates=600):
+    """Plane (unit normal, offset) with normal . x = offset that best mirrors the surface onto itself.
+
+    A coarse search over candidate normals through the centroid, then a mirror ICP from the best
+    few: the mirrored samples are aligned rigidly to their closest surface points, and the plane
+    is read off the resulting reflection (its -1 eigenvector and its offset).
+    """
     tree = cKDTree(samples)
     probe = samples[:: max(1, len(samples) // 400)]
     centre = samples.mean(axis=0)
@@ -79,28 +87,30 @@ def symmetry_plane(samples, diagonal, candidates=600):
     heights = (probe - centre) @ dirs.T                                   # (p, d)
     mirrored = probe[None] - 2.0 * heights.T[:, :, None] * dirs[:, None]  # (d, p, 3)
     errors = tree.query(mirrored.reshape(-1, 3), workers=-1)[0].reshape(len(dirs), -1).mean(axis=1)
-    order = np.argsort(errors)
+    points = samples[:: max(1, len(samples) // 1500)]
     best = None
-    for d in dirs[order[:4]]:                              # refine the few best coarse candidates
+    for d in dirs[np.argsort(errors)[:3]]:
         normal, offset = d, d @ centre
-        for _ in range(12):
-            dist, idx = tree.query(_mirror(samples, normal, offset))
-            keep = dist < np.quantile(dist, 0.8)           # ignore the asymmetric fraction
-            p, q = samples[keep], samples[idx[keep]]
-            diff = p - q
-            diff[diff @ normal < 0] *= -1
-            weights = np.linalg.norm(diff, axis=1) > 1e-3 * diagonal
-            if weights.sum() < 10:
+        for _ in range(15):
+            image = _mirror(points, normal, offset)
+            closest, _, dist, _ = surface.closest(image)
+            keep = dist <= np.quantile(dist, 0.8)                # ignore the asymmetric fraction
+            rotation, _ = Rotation.align_vectors(closest[keep] - closest[keep].mean(axis=0),
+                                                 image[keep] - image[keep].mean(axis=0))
+            r = rotation.as_matrix()
+            shift = closest[keep].mean(axis=0) - r @ image[keep].mean(axis=0)
+            # composed map x -> r (H x + 2 offset normal) + shift is (nearly) a reflection
+            linear = r @ (np.eye(3) - 2.0 * np.outer(normal, normal))
+            values, vectors = np.linalg.eig(linear)
+            new = np.real(vectors[:, np.argmin(np.real(values))])
+            new = new if new @ normal > 0 else -new
+            new /= np.linalg.norm(new)
+            new_offset = float((r @ (2.0 * offset * normal) + shift) @ new) / 2.0
+            moved = np.degrees(np.arccos(np.clip(new @ normal, -1, 1)))
+            normal, offset = new, new_offset
+            if moved < 0.01:
                 break
-            # the plane normal is the dominant direction of the pair differences
-            _, _, vt = np.linalg.svd(diff[weights], full_matrices=False)
-            new = vt[0] if vt[0] @ normal > 0 else -vt[0]
-            offset = np.median(((p + q) / 2.0) @ new)
-            converged = np.arccos(np.clip(new @ normal, -1, 1)) < 1e-4
-            normal = new
-            if converged:
-                break
-        error = tree.query(_mirror(samples, normal, offset))[0].mean() / diagonal
+        error = surface.closest(_mirror(points, normal, offset))[2].mean() / diagonal
         if best is None or error < best[2]:
             best = (normal, offset, error)
     return best
@@ -118,8 +128,8 @@ def face_frame(vertices, triangles):
     """The FaceFrame of a face or head mesh (see module docstring). Raises ExCloneError if unsure."""
     used = np.unique(triangles)
     diagonal = float(np.linalg.norm(np.ptp(vertices[used], axis=0)))
-    samples = surface_samples(vertices, triangles)
-    normal, offset, sym_error = symmetry_plane(samples, diagonal)
+    samples, normals = surface_samples(vertices, triangles)
+    normal, offset, sym_error = symmetry_plane(samples, diagonal, TriangleSurface(vertices, triangles))
     if sym_error > 0.02:
         raise ExCloneError(
             f"could not find the face's left-right symmetry (mirror mismatch {100 * sym_error:.1f}% "
@@ -142,6 +152,15 @@ def face_frame(vertices, triangles):
     scores = np.array([_protrusion(samples, tree, d, candidates, radius)[0] for d in directions])
     smooth = np.convolve(np.r_[scores[-7:], scores, scores[:7]], np.ones(15) / 15, mode="valid")
     forward = directions[np.argmax(smooth)]
+    # Refine continuously (a grid's argmax would differ by a degree or two between rotated
+    # copies): forward is the mean outward normal of the face around the nose tip.
+    _, tip = _protrusion(samples, tree, forward, candidates, radius)
+    around = tree.query_ball_point(samples[tip], 0.25 * diagonal)
+    outward = normals[around] * np.sign(normals[around] @ forward)[:, None]
+    mean_normal = outward.sum(axis=0)
+    mean_normal -= (mean_normal @ normal) * normal
+    if np.linalg.norm(mean_normal) > 0:
+        forward = mean_normal / np.linalg.norm(mean_normal)
 
     # Up: perpendicular to forward within the plane, signed like the supported conventions'
     # up (+Y for a Y-up import, +Z in Blender's front view): whichever is further from forward.
