@@ -103,7 +103,8 @@ def map_vertices(source_vertices, source_triangles, target_vertices, target_norm
 
 def mapped_triangles(vertex_map, source_vertices, source_triangles, target_vertices,
                      target_triangles, source_normal_sign=1.0, target_normal_sign=1.0, stretch=3.0):
-    """Target triangles whose corners' images on the source form a plausible triangle."""
+    """Target triangles whose corners' images on the source form a plausible triangle: same
+    facing, edges and area within `stretch` (squared for the area) of the target's own."""
     ok = vertex_map.valid[target_triangles].all(axis=1)
     corners = np.zeros(target_triangles.shape + (3,))
     ids = target_triangles[ok]
@@ -117,4 +118,8 @@ def mapped_triangles(vertex_map, source_vertices, source_triangles, target_verti
     image_n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
     own_n = np.cross(own[:, 1] - own[:, 0], own[:, 2] - own[:, 0])
     ok &= source_normal_sign * target_normal_sign * np.einsum("ij,ij->i", image_n, own_n) > 0
+    # corners that land in a line make a flat image even when no edge shrank
+    with np.errstate(divide="ignore", invalid="ignore"):
+        area_ratio = np.linalg.norm(image_n, axis=1) / np.linalg.norm(own_n, axis=1)
+    ok &= (area_ratio > 1 / stretch ** 2) & (area_ratio < stretch ** 2)
     return ok

@@ -31,6 +31,10 @@ TEMPLATE_IBUG = {
     "eyelid_upper_left": 44, "eyelid_upper_right": 37,
 }
 NAMES = HEURISTIC + tuple(TEMPLATE_IBUG)
+# The heuristic points that carry the template's: the ones that stay put when the face turns
+# (the crown, the back of the head and the alar creases slide along flat or shallow shapes).
+RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip", "chin",
+               "eye_inner_left", "eye_inner_right", "ear_tip_left", "ear_tip_right")
 
 
 def plane_section(points, triangles, axis, value):
@@ -51,6 +55,8 @@ def _profile(segments, walk_axis, bin_size):
     """Front envelope (max z) of section segments sampled along `walk_axis`.
 
     Returns (sample positions, z (NaN where no segment), envelope point per sample)."""
+    if len(segments) == 0:
+        return np.zeros(0), np.zeros(0), np.zeros((0, 3))
     s0, s1 = segments[:, 0], segments[:, 1]
     lo = min(s0[:, walk_axis].min(), s1[:, walk_axis].min())
     hi = max(s0[:, walk_axis].max(), s1[:, walk_axis].max())
@@ -149,8 +155,8 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     height = np.ptp(q[used, 1])
     is_head = band.size and (tip[2] - q[band, 2].min()) > 0.35 * height
     if is_head:
-        # the skull only: a mesh may go on into neck and shoulders below the nose
-        skull = used[q[used, 1] > tip[1]]
+        # the skull's midline only: a mesh may go on into neck and shoulders below the nose
+        skull = near_mid[q[near_mid, 1] > tip[1]]
         ears = used[np.abs(q[used, 1] - tip[1]) < 0.12 * diag]
         found["head_top"] = q[used[np.argmax(q[used, 1])]]
         found["head_back"] = q[skull[np.argmin(q[skull, 2])]]
@@ -189,7 +195,7 @@ def heuristic_landmarks(vertices, triangles, frame=None):
         # the corners sit at or somewhat below the bridge: cut at several heights, keep the
         # deepest crease on each side
         eye_cuts = [_profile(plane_section(q, front_tris, 1, found["nose_bridge"][1] - k * nose_length),
-                             0, bin_size) for k in np.linspace(0.0, 0.5, 6)]
+                             0, bin_size) for k in np.linspace(0.0, 0.5, 21)]
         # Alar creases: just below the tip's height, where a cut leaves the nose wing for the
         # cheek (not the nostril beside the columella, nearer the midline).
         alar = _profile(plane_section(q, front_tris, 1, tip[1] - 0.1 * nose_length), 0, bin_size)
@@ -203,9 +209,23 @@ def heuristic_landmarks(vertices, triangles, frame=None):
             for name, point in ((f"eye_inner_{side}", corner), (f"alar_{side}", crease)):
                 if point is not None:
                     found[name] = point
-    names = list(found)
-    _, ids = cKDTree(q[used]).query(np.array([found[n] for n in names]))
-    return {n: int(used[i]) for n, i in zip(names, ids)}
+    return _snap_symmetric(found, q, used)
+
+
+def _snap_symmetric(found, q, candidates):
+    """Snap canonical positions to vertices; a left/right pair is first made mirror-symmetric
+    (each side the mean of itself and its mirrored twin): faces are nearly symmetric, and one
+    side's detection noise should not make the two sides disagree."""
+    points = dict(found)
+    mirror = np.array([-1.0, 1.0, 1.0])
+    for name in found:
+        if name.endswith("_left") and name[:-5] + "_right" in found:
+            right = name[:-5] + "_right"
+            mean = (np.asarray(found[name]) + mirror * found[right]) / 2
+            points[name], points[right] = mean, mirror * mean
+    names = list(points)
+    _, ids = cKDTree(q[candidates]).query(np.array([points[n] for n in names]))
+    return {n: int(candidates[i]) for n, i in zip(names, ids)}
 
 
 @lru_cache(maxsize=1)
@@ -230,9 +250,9 @@ def automatic_landmarks(vertices, triangles, frame=None):
     frame = frame or face_frame(vertices, triangles)
     found = heuristic_landmarks(vertices, triangles, frame)
     template = _template()
-    shared = [n for n in HEURISTIC if n in found and n in template]
+    shared = [n for n in RBF_SOURCES if n in found and n in template]
     if len(shared) < 6:
-        missing = ", ".join(n for n in HEURISTIC if n not in found)
+        missing = ", ".join(n for n in RBF_SOURCES if n not in found)
         raise ExCloneError(f"only {len(shared)} landmarks found automatically (missing: {missing}); "
                            "place the landmarks by hand")
     q = frame.to_canonical(vertices)
@@ -243,11 +263,8 @@ def automatic_landmarks(vertices, triangles, frame=None):
     # snap onto the parts the heuristic points are on (not eyeballs, teeth or lashes)
     parts = vertex_parts(len(vertices), triangles)
     on_face = np.flatnonzero(np.isin(parts, parts[list(found.values())]))
-    tree = cKDTree(q[on_face])
     extra = [n for n in TEMPLATE_IBUG if n in template]
     mapped = rbf(np.array([template[n] for n in extra]))
-    _, nearest = tree.query(mapped)
-    for name, k in zip(extra, nearest):
-        found[name] = int(on_face[k])
+    found.update(_snap_symmetric(dict(zip(extra, mapped)), q, on_face))
     names = [n for n in NAMES if n in found]
     return names, np.array([found[n] for n in names], dtype=np.int64)

@@ -57,9 +57,12 @@ class TriangleSurface:
         self.k = min(k, len(self.triangles))
         self.tree = cKDTree(self.vertices[self.triangles].mean(axis=1))
 
-    def closest(self, points):
+    def closest(self, points, chunk=20000):
         """Returns (closest points (m,3), triangle ids (m,), distances (m,), barycentric (m,3))."""
         points = np.asarray(points, dtype=np.float64)
+        if len(points) > chunk:   # bounded memory: k candidates per point add up
+            parts = [self.closest(points[i:i + chunk], chunk) for i in range(0, len(points), chunk)]
+            return tuple(np.concatenate(p) for p in zip(*parts))
         m = len(points)
         _, cand = self.tree.query(points, k=self.k)
         cand = cand.reshape(m, -1)

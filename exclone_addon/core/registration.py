@@ -46,9 +46,10 @@ class Schedule:
 @dataclass
 class Registration:
     vertices: np.ndarray              # (n_source, 3) registered source, in target coordinates
-    mean_distance: float              # mean distance of the registered region to the target surface
-    valid_fraction: float             # share of region vertices with a valid closest point at the end
+    mean_distance: float              # mean distance to the target surface where the two overlap
+    valid_fraction: float             # share of region vertices in the overlap (valid closest point)
     history: list = field(default_factory=list)   # mean distance before each w_C step, and at the end
+    # (before each step: over all region vertices with a valid closest point of that step)
 
 
 class ReusedOrderingSolver:
@@ -98,18 +99,22 @@ def closest_valid_points(points, normals, on_border, surface, surface_normals, b
 
 
 def similarity_icp(source_points, source_normals, target_vertices, target_triangles,
-                   target_normal_sign=1.0, max_distance=np.inf, iterations=100):
+                   target_normal_sign=1.0, max_distance=np.inf, iterations=100, sample=2000,
+                   tolerance=1e-3):
     """Refine a rough alignment of the source points to the target surface by a similarity.
 
-    Each iteration pairs every source point with its closest target point (normals within 90
-    degrees, within max_distance, the worst 10% trimmed) and solves the least-squares similarity.
-    Returns (R, s, t) to apply on top of the current positions.
+    Each iteration pairs (up to `sample` of) the source points with their closest target points
+    (normals within 90 degrees, within max_distance, the worst 10% trimmed) and solves the
+    least-squares similarity; it stops when the mean distance improves by less than `tolerance`
+    (relative). Returns (R, s, t) to apply on top of the current positions.
     """
     from .cloning import similarity_transform   # one Umeyama for the whole core
     surface = TriangleSurface(target_vertices, target_triangles)
     normals_t = target_normal_sign * vertex_normals(target_vertices, target_triangles)
     total_r, total_s, total_t = np.eye(3), 1.0, np.zeros(3)
-    points, normals = source_points.copy(), source_normals.copy()
+    step = max(1, len(source_points) // sample)
+    points, normals = source_points[::step].copy(), source_normals[::step].copy()
+    previous = np.inf
     for _ in range(iterations):
         closest, tri, dist, bary = surface.closest(points)
         facing = np.einsum("ij,ij->i", interpolate(normals_t, target_triangles, tri, bary), normals)
@@ -117,12 +122,14 @@ def similarity_icp(source_points, source_normals, target_vertices, target_triang
         if ok.sum() < 10:
             break
         ok &= dist <= np.quantile(dist[ok], 0.9)
+        mean = dist[ok].mean()
+        if mean > previous * (1 - tolerance):
+            break
+        previous = mean
         r, s, t = similarity_transform(points[ok], closest[ok])
         points = points @ r.T * s + t
         normals = normals @ r.T
         total_r, total_s, total_t = r @ total_r, s * total_s, s * (r @ total_t) + t
-        if np.linalg.norm(r - np.eye(3)) < 1e-6 and abs(s - 1) < 1e-6:
-            break
     return total_r, total_s, total_t
 
 
@@ -243,12 +250,18 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
         a_ff = sp.csr_matrix(matrix)[free][:, free]
         b_f = rhs[free] - sp.csr_matrix(matrix)[free][:, fixed] @ x[fixed]
         x[free] = solver.solve(a_ff, b_f)
-    distances = surface.closest(x[region])[2]
-    history.append(float(distances.mean()) * unit)
+    # The fit error counts where the surfaces overlap: source parts that reach past the target
+    # (a neck below a head's cut) have no closest point to be measured against.
+    normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
+    _, overlap, distances = closest_valid_points(
+        x[region], normals[region], source_border[region], surface, target_normals, border,
+        target_border_edges, schedule.max_distance * diag, schedule.border_distance * diag)
+    mean_distance = float(distances[overlap].mean()) if overlap.any() else float(distances.mean())
+    history.append(mean_distance * unit)
     return Registration(
         vertices=x[:n] * unit,
-        mean_distance=float(distances.mean()) * unit,
-        valid_fraction=float(valid[region].mean()) if len(region) else 0.0,
+        mean_distance=mean_distance * unit,
+        valid_fraction=float(overlap.mean()) if len(region) else 0.0,
         history=history,
     )
 
