@@ -27,7 +27,7 @@ def summary(added, replaced, skipped, seconds, quality):
     text = ", ".join(parts) + f" in {seconds:.1f} s"
     fit = quality.get("registration_mean_distance_rel")
     if fit is not None:
-        text += f", fit error {100 * fit:.1f}%"
+        text += f", fit error {100 * fit:.2g}%"
     return text
 
 
