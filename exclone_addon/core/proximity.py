@@ -51,7 +51,7 @@ class TriangleSurface:
     meshes; k grows the safety margin).
     """
 
-    def __init__(self, vertices, triangles, k=12):
+    def __init__(self, vertices, triangles, k=8):
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.triangles = np.asarray(triangles)
         self.k = min(k, len(self.triangles))
@@ -64,7 +64,7 @@ class TriangleSurface:
             parts = [self.closest(points[i:i + chunk], chunk) for i in range(0, len(points), chunk)]
             return tuple(np.concatenate(p) for p in zip(*parts))
         m = len(points)
-        _, cand = self.tree.query(points, k=self.k)
+        _, cand = self.tree.query(points, k=self.k, workers=-1)
         cand = cand.reshape(m, -1)
         tri = self.triangles[cand.ravel()]
         rep = np.repeat(points, cand.shape[1], axis=0)
