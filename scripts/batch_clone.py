@@ -12,6 +12,12 @@ from pathlib import Path
 
 import bpy
 
+try:
+    import scipy  # noqa: F401  (Blender ships numpy but not scipy)
+except ImportError:
+    sys.exit("batch_clone: error: scipy is not available in this Python; inside Blender, install and "
+             "enable the ExClone extension first (it bundles scipy), or run with .venv/bin/python")
+
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from exclone_addon.batch import main  # noqa: E402  (needs the repository on sys.path)
 

@@ -36,6 +36,8 @@ class PolyMesh:
         return triangulate(self.loop_totals, self.loop_vertices)
 
     def faces(self):
+        if len(self.loop_totals) == 0:
+            return []
         return np.split(self.loop_vertices, np.cumsum(self.loop_totals)[:-1])
 
 
