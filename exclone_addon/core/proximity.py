@@ -51,7 +51,7 @@ class TriangleSurface:
     meshes; k grows the safety margin).
     """
 
-    def __init__(self, vertices, triangles, k=8):
+    def __init__(self, vertices, triangles, k=12):
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.triangles = np.asarray(triangles)
         self.k = min(k, len(self.triangles))
