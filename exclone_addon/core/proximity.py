@@ -64,7 +64,8 @@ class TriangleSurface:
             parts = [self.closest(points[i:i + chunk], chunk) for i in range(0, len(points), chunk)]
             return tuple(np.concatenate(p) for p in zip(*parts))
         m = len(points)
-        _, cand = self.tree.query(points, k=self.k, workers=-1)
+        # threads only pay off for large queries; small ones lose more to the pool's start-up
+        _, cand = self.tree.query(points, k=self.k, workers=-1 if m > 5000 else 1)
         cand = cand.reshape(m, -1)
         tri = self.triangles[cand.ravel()]
         rep = np.repeat(points, cand.shape[1], axis=0)
