@@ -5,11 +5,17 @@ so the Blender layer is imported only when Blender registers the extension.
 """
 
 
+def _modules():
+    """The Blender layer's modules in registration order (properties before what uses them)."""
+    from .blender import operators, panel, preferences, properties
+    return (properties, preferences, operators, panel)
+
+
 def register():
-    from .blender import operators
-    operators.register()
+    for module in _modules():
+        module.register()
 
 
 def unregister():
-    from .blender import operators
-    operators.unregister()
+    for module in reversed(_modules()):
+        module.unregister()

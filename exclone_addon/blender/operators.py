@@ -1,19 +1,22 @@
-"""Operators: clone expressions from a selected mesh (or the built-in library) onto the active one."""
+"""Operators: landmarks, registration and cloning of expressions onto the target mesh.
+
+The target is the scene's ExClone target or the active object; the source is the built-in
+library, the scene's source object or the selected mesh with shape keys. Every operator checks
+its input before it changes anything, reports one line, and is one undo step.
+"""
 import time
 
 import bpy
-from bpy.props import BoolProperty, EnumProperty
+from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from ..core.cloning import CloneSettings, clone_expressions
 from ..core.errors import Cancelled, ExCloneError
-from ..core.library import load_library
-from . import mesh_io
+from ..core.library import arkit_blendshapes
+from . import landmarks as stored_landmarks
+from . import mesh_io, workflow
+from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
 
-
-def _source_candidates(context, target):
-    return [obj for obj in context.selected_objects
-            if obj != target and obj.type == 'MESH' and obj.data.shape_keys is not None
-            and len(obj.data.shape_keys.key_blocks) > 1]
+PREVIEW_TAG = "exclone_preview"
+PREVIEW_NAME = "ExClone registration preview"
 
 
 def summary(added, replaced, skipped, seconds, quality):
@@ -31,78 +34,51 @@ def summary(added, replaced, skipped, seconds, quality):
     return text
 
 
-class EXCLONE_OT_clone_expressions(bpy.types.Operator):
-    """Clone the expressions (shape keys) of the selected source mesh, or of the built-in
-    library, onto the active mesh as new shape keys"""
-    bl_idname = "exclone.clone_expressions"
-    bl_label = "Clone Expressions"
+def _poll_target(cls, context):
+    """Object Mode and a mesh target, else False with the reason as the button's tooltip."""
+    if context.mode != 'OBJECT':
+        cls.poll_message_set("Switch to Object Mode first")
+        return False
+    target = workflow.target_object(context)
+    if target is None:
+        cls.poll_message_set("Nothing selected: make the target head the active object")
+        return False
+    if target.type != 'MESH':
+        cls.poll_message_set(f"'{target.name}' is not a mesh: the target must be a mesh object")
+        return False
+    return True
+
+
+def _poll_source(cls, context):
+    """False (with a reason) when the scene's chosen source object cannot be a source."""
+    settings = context.scene.exclone
+    source = settings.source
+    if settings.source_mode == 'OBJECT' and source is not None:
+        if source == workflow.target_object(context):
+            cls.poll_message_set(f"'{source.name}' is both source and target")
+            return False
+        if not workflow.has_shape_keys(source):
+            cls.poll_message_set(f"Source '{source.name}' has no shape keys")
+            return False
+    return True
+
+
+class _Engine:
+    """execute() runs self.run(context, progress) with progress in the status bar; an
+    ExCloneError becomes an error report and a cancelled operator that changed nothing."""
     bl_options = {'REGISTER', 'UNDO'}
 
-    use_library: BoolProperty(
-        name="Built-in Library",
-        description="Use the bundled ICT-FaceKit ARKit expressions as the source instead of a "
-                    "selected mesh with shape keys",
-        default=False)
-    replace_existing: BoolProperty(
-        name="Replace Existing",
-        description="Overwrite shape keys that already have an expression's name "
-                    "(otherwise they are kept and skipped)",
-        default=False)
     preset: EnumProperty(
         name="Quality",
-        items=[("fast", "Fast", "Coarse registration schedule"),
-               ("balanced", "Balanced", "Default registration schedule"),
-               ("precise", "Precise", "Finest registration schedule, slowest")],
-        default="balanced")
-
-    @classmethod
-    def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode first")
-            return False
-        target = context.active_object
-        if target is None or target.type != 'MESH':
-            cls.poll_message_set("Make the target head the active object (it must be a mesh)")
-            return False
-        return True
-
-    def _source(self, context, target):
-        if self.use_library:
-            library = load_library()
-            return library.mesh, library.names, library.deltas
-        candidates = _source_candidates(context, target)
-        if not candidates:
-            raise ExCloneError("Select a source mesh with shape keys as well as the target "
-                               "(active), or enable Built-in Library")
-        if len(candidates) > 1:
-            raise ExCloneError("Several selected meshes have shape keys ("
-                               + ", ".join(obj.name for obj in candidates)
-                               + "): select only one source")
-        source = candidates[0]
-        names, deltas = mesh_io.shape_keys_from_object(source, what="source")
-        return mesh_io.mesh_from_object(source, what="source"), names, deltas
+        items=[("DEFAULT", "Preferences Default", "The preset chosen in the add-on preferences")]
+        + PRESET_ITEMS, default="DEFAULT")
+    formulation: EnumProperty(name="Formulation", items=FORMULATION_ITEMS, default="reduced")
 
     def execute(self, context):
-        target = context.active_object
         window_manager = context.window_manager
-        started = time.perf_counter()
         window_manager.progress_begin(0.0, 1.0)
         try:
-            source_mesh, names, deltas = self._source(context, target)
-            existing = target.data.shape_keys.key_blocks.keys() if target.data.shape_keys else []
-            skipped = [] if self.replace_existing else [n for n in names if n in existing]
-            wanted = [i for i, name in enumerate(names) if name not in skipped]
-            if not wanted:
-                self.report({'WARNING'}, f"All {len(names)} expressions already exist as shape "
-                                         "keys on the target; enable Replace Existing to redo them")
-                return {'CANCELLED'}
-            result = clone_expressions(
-                source_mesh, deltas[wanted], [names[i] for i in wanted],
-                mesh_io.mesh_from_object(target, what="target"),
-                settings=CloneSettings(preset=self.preset),
-                progress=lambda fraction, message: window_manager.progress_update(fraction))
-            added, replaced, also_skipped = mesh_io.write_shape_keys(
-                target, result.names, result.deltas, replace_existing=self.replace_existing)
+            return self.run(context, lambda fraction, _: window_manager.progress_update(fraction))
         except ExCloneError as exc:
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}
@@ -111,17 +87,332 @@ class EXCLONE_OT_clone_expressions(bpy.types.Operator):
             return {'CANCELLED'}
         finally:
             window_manager.progress_end()
+
+    def settings(self, context):
+        return workflow.clone_settings(context, self.preset, self.formulation)
+
+
+class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
+    """Clone the expressions (shape keys) of the source mesh, or of the built-in library, onto
+    the target as new shape keys relative to its basis"""
+    bl_idname = "exclone.clone_expressions"
+    bl_label = "Clone Expressions"
+
+    use_library: BoolProperty(
+        name="Built-in Library",
+        description="Use the bundled ICT-FaceKit ARKit expressions as the source instead of a "
+                    "mesh with shape keys", default=False)
+    replace_existing: BoolProperty(
+        name="Replace Existing",
+        description="Overwrite shape keys that already have an expression's name "
+                    "(otherwise they are kept and skipped)", default=False)
+    prefix: StringProperty(name="Prefix", description="Put this before every new key's name")
+    only_ticked: BoolProperty(
+        name="Only Ticked Expressions",
+        description="Clone only the expressions ticked in the panel's list", default=False)
+    parts: EnumProperty(name="Other Parts", items=PARTS_ITEMS, default="FOLLOW")
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_target(cls, context) and _poll_source(cls, context)
+
+    def _wanted(self, context, names):
+        if not self.only_ticked:
+            return list(names)
+        listed = context.scene.exclone.expressions
+        if not len(listed):
+            raise ExCloneError("The expression list is empty: press Refresh to fill it from the "
+                               "source")
+        ticked = {item.name for item in listed if item.selected}
+        wanted = [name for name in names if name in ticked]
+        if not wanted:
+            raise ExCloneError("No expression of the source is ticked in the list")
+        return wanted
+
+    def run(self, context, progress):
+        started = time.perf_counter()
+        target = workflow.checked_target(workflow.target_object(context))
+        source = workflow.resolve_source(context, target, self.use_library)
+        wanted = self._wanted(context, source.names)
+        existing = target.data.shape_keys.key_blocks.keys() if target.data.shape_keys else []
+        skipped = [] if self.replace_existing else \
+            [name for name in wanted if self.prefix + name in existing]
+        wanted = [name for name in wanted if name not in skipped]
+        if not wanted:
+            self.report({'WARNING'}, f"All {len(skipped)} expressions already exist as shape "
+                                     "keys on the target; enable Replace Existing to redo them")
+            return {'CANCELLED'}
+        target_mesh = workflow.basis_mesh(target, "target")
+        landmarks = workflow.landmark_pairs(source, target, target_mesh)
+        run = workflow.run_engine(source, target_mesh, landmarks, self.settings(context), progress)
+        result = run.result
+        rows = [result.names.index(name) for name in wanted]
+        deltas = result.deltas[rows]
+        if self.parts == 'STILL':
+            deltas[:, workflow.still_parts_mask(target_mesh, result.target_landmarks)] = 0.0
+        added, replaced, also_skipped = mesh_io.write_shape_keys(
+            target, [self.prefix + name for name in wanted], deltas,
+            replace_existing=self.replace_existing)
         self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
-                                      time.perf_counter() - started, result.quality))
+                                      time.perf_counter() - started, result.quality)
+                    + (" (registration reused)" if run.cached else ""))
+        return {'FINISHED'}
+
+
+class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
+    """One click: the built-in library cloned onto the target as Apple's 52 ARKit blend shape
+    names (browInnerUp and cheekPuff combined from their halves; tongueOut is not in the
+    library)"""
+    bl_idname = "exclone.generate_arkit_shapes"
+    bl_label = "Generate ARKit Shapes"
+
+    replace_existing: BoolProperty(
+        name="Replace Existing",
+        description="Overwrite shape keys that already have an ARKit name", default=False)
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_target(cls, context)
+
+    def run(self, context, progress):
+        started = time.perf_counter()
+        target = workflow.checked_target(workflow.target_object(context))
+        source = workflow.library_source()
+        target_mesh = workflow.basis_mesh(target, "target")
+        landmarks = workflow.landmark_pairs(source, target, target_mesh)
+        run = workflow.run_engine(source, target_mesh, landmarks, self.settings(context), progress)
+        names, deltas, missing = arkit_blendshapes(run.result.names, run.result.deltas)
+        added, replaced, skipped = mesh_io.write_shape_keys(
+            target, names, deltas, replace_existing=self.replace_existing)
+        text = summary(added, replaced, skipped, time.perf_counter() - started, run.result.quality)
+        if missing:
+            text += f"; not in the library: {', '.join(missing)}"
+        self.report({'INFO'}, "ARKit: " + text)
+        return {'FINISHED'}
+
+
+def _remove_previews():
+    previews = [obj for obj in bpy.data.objects if PREVIEW_TAG in obj]
+    meshes = [obj.data for obj in previews]
+    bpy.data.batch_remove(previews + meshes)
+    return len(previews)
+
+
+class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
+    """Fit the source face onto the target with the current landmarks and report the fit error
+    (the result is kept, so Clone does not redo it while nothing changes)"""
+    bl_idname = "exclone.register_faces"
+    bl_label = "Register"
+
+    use_library: BoolProperty(name="Built-in Library", default=False,
+                              description="Register the built-in library's face")
+    preview: BoolProperty(
+        name="Preview", default=True,
+        description="Show the registered source as a temporary wireframe object (replaced by "
+                    "the next Register, removed by Remove Preview)")
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_target(cls, context) and _poll_source(cls, context)
+
+    def run(self, context, progress):
+        started = time.perf_counter()
+        target = workflow.checked_target(workflow.target_object(context))
+        source = workflow.resolve_source(context, target, self.use_library)
+        target_mesh = workflow.basis_mesh(target, "target")
+        landmarks = workflow.landmark_pairs(source, target, target_mesh)
+        run = workflow.run_engine(source, target_mesh, landmarks, self.settings(context), progress)
+        _remove_previews()
+        if self.preview:
+            mesh = type(source.mesh)(run.result.registered_source, source.mesh.loop_totals,
+                                     source.mesh.loop_vertices)
+            preview = mesh_io.object_from_mesh(PREVIEW_NAME, mesh)
+            preview[PREVIEW_TAG] = True
+            preview.matrix_world = target.matrix_world
+            preview.display_type = 'WIRE'
+            preview.hide_render = True
+        count = len(run.result.target_landmarks)
+        self.report({'INFO'}, f"Registered {source.description} onto '{target.name}': "
+                              f"{workflow.fit_text(run.result)} of the target's size, {count} "
+                              f"{run.landmark_kind} landmarks, "
+                              + (f"cached result ({time.perf_counter() - started:.1f} s)"
+                                 if run.cached else f"{time.perf_counter() - started:.1f} s"))
+        return {'FINISHED'}
+
+
+class EXCLONE_OT_remove_preview(bpy.types.Operator):
+    """Remove the registration preview object"""
+    bl_idname = "exclone.remove_preview"
+    bl_label = "Remove Preview"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        if not any(PREVIEW_TAG in obj for obj in bpy.data.objects):
+            cls.poll_message_set("There is no registration preview")
+            return False
+        return True
+
+    def execute(self, context):
+        self.report({'INFO'}, f"Removed {_remove_previews()} preview object(s)")
+        return {'FINISHED'}
+
+
+def _landmark_objects(context):
+    """The mesh objects whose landmarks the landmark operators act on: source and target."""
+    target = workflow.target_object(context)
+    objects = [target] if target is not None and target.type == 'MESH' else []
+    settings = context.scene.exclone
+    if settings.source_mode == 'OBJECT':
+        try:
+            source = workflow.source_object(context, target)
+        except ExCloneError:
+            source = None
+        if source is not None and source.type == 'MESH' and source not in objects:
+            objects.insert(0, source)
+    return objects
+
+
+class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
+    """Find the landmarks on the source and the target automatically and show them as named
+    markers you can drag (then Snap Landmarks)"""
+    bl_idname = "exclone.auto_landmarks"
+    bl_label = "Auto Landmarks"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_target(cls, context)
+
+    def execute(self, context):
+        started = time.perf_counter()
+        found = {}
+        try:
+            for obj in _landmark_objects(context):
+                found[obj] = stored_landmarks.detect(workflow.basis_mesh(obj, obj.name))
+        except ExCloneError as exc:
+            self.report({'ERROR'}, f"{obj.name}: {exc}")
+            return {'CANCELLED'}
+        for obj, landmarks in found.items():
+            stored_landmarks.store(obj, landmarks, automatic=True)
+        counts = ", ".join(f"{len(marks)} on '{obj.name}'" for obj, marks in found.items())
+        self.report({'INFO'}, f"Landmarks placed: {counts} in {time.perf_counter() - started:.1f} s")
+        return {'FINISHED'}
+
+
+class _LandmarkEdit:
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        if context.mode != 'OBJECT':
+            cls.poll_message_set("Switch to Object Mode first")
+            return False
+        if not any(stored_landmarks.IDS in obj for obj in _landmark_objects(context)):
+            cls.poll_message_set("The source and target have no landmarks: run Auto Landmarks")
+            return False
+        return True
+
+
+class EXCLONE_OT_snap_landmarks(_LandmarkEdit, bpy.types.Operator):
+    """Put every moved landmark marker on its nearest vertex and store it with the object"""
+    bl_idname = "exclone.snap_landmarks"
+    bl_label = "Snap Landmarks"
+
+    def execute(self, context):
+        snapped = {obj.name: stored_landmarks.snap(obj) for obj in _landmark_objects(context)
+                   if stored_landmarks.IDS in obj}
+        moved = sum(len(changed) for changed, _ in snapped.values())
+        dropped = [f"{name} of '{obj}'" for obj, (_, gone) in snapped.items() for name in gone]
+        detail = "; ".join(f"'{obj}': {', '.join(changed)}"
+                           for obj, (changed, _) in snapped.items() if changed)
+        self.report({'INFO'}, f"{moved} landmark(s) moved to a new vertex"
+                              + (f" ({detail})" if detail else "")
+                              + (f"; {len(dropped)} without a marker removed" if dropped else ""))
+        return {'FINISHED'}
+
+
+class EXCLONE_OT_mirror_landmarks(_LandmarkEdit, bpy.types.Operator):
+    """Place each right-side landmark at the mirror image of its left twin (or the reverse),
+    through the face's symmetry plane"""
+    bl_idname = "exclone.mirror_landmarks"
+    bl_label = "Mirror Landmarks"
+
+    from_side: EnumProperty(
+        name="From", items=[("left", "Left to Right", "The character's left side is copied"),
+                            ("right", "Right to Left", "The character's right side is copied")],
+        default="left")
+
+    def execute(self, context):
+        objects = [obj for obj in _landmark_objects(context) if stored_landmarks.IDS in obj]
+        try:
+            for obj in objects:
+                stored_landmarks.checked(obj, obj.name)
+            # every object's new landmarks first: an error leaves all of them as they were
+            mirrored = {obj: stored_landmarks.mirrored(obj, workflow.basis_mesh(obj, obj.name),
+                                                       self.from_side) for obj in objects}
+        except ExCloneError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
+        count = 0
+        for obj, (landmarks, changed) in mirrored.items():
+            stored_landmarks.store(obj, landmarks, automatic=False)
+            count += len(changed)
+        self.report({'INFO'}, f"{count} landmark(s) mirrored from the {self.from_side} side")
+        return {'FINISHED'}
+
+
+class EXCLONE_OT_clear_landmarks(_LandmarkEdit, bpy.types.Operator):
+    """Remove the landmarks and markers of the source and target (cloning then finds automatic
+    landmarks by itself)"""
+    bl_idname = "exclone.clear_landmarks"
+    bl_label = "Clear Landmarks"
+
+    def execute(self, context):
+        objects = [obj for obj in _landmark_objects(context) if stored_landmarks.IDS in obj]
+        for obj in objects:
+            stored_landmarks.clear(obj)
+        self.report({'INFO'}, f"Landmarks removed from {', '.join(repr(o.name) for o in objects)}")
+        return {'FINISHED'}
+
+
+class EXCLONE_OT_refresh_expressions(bpy.types.Operator):
+    """Fill the expression list from the source (ticks of names already listed are kept)"""
+    bl_idname = "exclone.refresh_expressions"
+    bl_label = "Refresh Expressions"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        return _poll_source(cls, context)
+
+    def execute(self, context):
+        try:
+            source = workflow.resolve_source(context, workflow.target_object(context), False)
+        except ExCloneError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
+        listed = context.scene.exclone.expressions
+        ticks = {item.name: item.selected for item in listed}
+        listed.clear()
+        for name in source.names:
+            item = listed.add()
+            item.name = name
+            item.selected = ticks.get(name, True)
+        self.report({'INFO'}, f"{len(source.names)} expressions from {source.description}")
         return {'FINISHED'}
 
 
 def _menu_entry(self, context):
     self.layout.operator(EXCLONE_OT_clone_expressions.bl_idname)
+    self.layout.operator(EXCLONE_OT_generate_arkit_shapes.bl_idname)
 
 
-_register_classes, _unregister_classes = bpy.utils.register_classes_factory(
-    (EXCLONE_OT_clone_expressions,))
+CLASSES = (EXCLONE_OT_clone_expressions, EXCLONE_OT_generate_arkit_shapes,
+           EXCLONE_OT_register_faces, EXCLONE_OT_remove_preview, EXCLONE_OT_auto_landmarks,
+           EXCLONE_OT_snap_landmarks, EXCLONE_OT_mirror_landmarks, EXCLONE_OT_clear_landmarks,
+           EXCLONE_OT_refresh_expressions)
+_register_classes, _unregister_classes = bpy.utils.register_classes_factory(CLASSES)
 
 
 def register():

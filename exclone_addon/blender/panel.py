@@ -1,0 +1,99 @@
+"""The "ExClone" tab of the 3D viewport's sidebar (N panel)."""
+import bpy
+
+from . import landmarks as stored_landmarks
+from . import workflow
+
+
+class EXCLONE_UL_expressions(bpy.types.UIList):
+    def draw_item(self, context, layout, data, item, icon, active_data, active_property, index):
+        layout.prop(item, "selected", text=item.name)
+
+
+def _engine_options(operator, settings):
+    if settings.preset != 'DEFAULT':
+        operator.preset = settings.preset
+    operator.formulation = settings.formulation
+
+
+class EXCLONE_PT_main(bpy.types.Panel):
+    bl_idname = "EXCLONE_PT_main"
+    bl_label = "ExClone"
+    bl_space_type = 'VIEW_3D'
+    bl_region_type = 'UI'
+    bl_category = "ExClone"
+
+    def draw(self, context):
+        draw(self.layout, context)
+
+
+def draw(layout, context):
+    """The panel's contents on `layout` (a UILayout, or anything with its methods)."""
+    settings = context.scene.exclone
+    use_library = settings.source_mode == 'LIBRARY'
+
+    column = layout.column(align=True)
+    column.label(text="Source")
+    column.prop(settings, "source_mode", text="")
+    if not use_library:
+        column.prop(settings, "source", text="")
+    column.label(text="Target")
+    column.prop(settings, "target", text="")
+    target = workflow.target_object(context)
+    if settings.target is None:
+        column.label(text=f"Active: {target.name}" if target is not None else "Active: nothing",
+                     icon='INFO')
+
+    box = layout.box()
+    box.label(text="Landmarks", icon='EMPTY_DATA')
+    row = box.row(align=True)
+    row.operator("exclone.auto_landmarks", icon='VIEWZOOM')
+    row.operator("exclone.snap_landmarks", text="Snap", icon='SNAP_ON')
+    row = box.row(align=True)
+    row.operator("exclone.mirror_landmarks", text="Mirror L > R").from_side = "left"
+    row.operator("exclone.clear_landmarks", text="Clear", icon='X')
+    if target is not None and target.type == 'MESH' and stored_landmarks.IDS in target:
+        kind = "edited" if stored_landmarks.is_edited(target) else "automatic"
+        box.label(text=f"{len(stored_landmarks.stored(target))} {kind} landmarks on target")
+
+    column = layout.column(align=True)
+    row = column.row(align=True)
+    register = row.operator("exclone.register_faces", icon='MOD_SHRINKWRAP')
+    register.use_library = use_library
+    register.preview = settings.show_preview
+    _engine_options(register, settings)
+    row.prop(settings, "show_preview", text="", icon='HIDE_OFF')
+    column.operator("exclone.remove_preview", icon='TRASH')
+    clone = column.operator("exclone.clone_expressions", icon='SHAPEKEY_DATA')
+    clone.use_library = use_library
+    clone.prefix = settings.prefix
+    clone.only_ticked = settings.use_selection
+    clone.parts = settings.parts
+    clone.replace_existing = settings.replace_existing
+    _engine_options(clone, settings)
+    arkit = column.operator("exclone.generate_arkit_shapes", icon='USER')
+    arkit.replace_existing = settings.replace_existing
+    _engine_options(arkit, settings)
+
+    box = layout.box()
+    box.prop(settings, "show_expressions", icon='DOWNARROW_HLT' if settings.show_expressions
+             else 'RIGHTARROW', emboss=False)
+    if settings.show_expressions:
+        box.prop(settings, "use_selection")
+        box.operator("exclone.refresh_expressions", icon='FILE_REFRESH')
+        box.template_list("EXCLONE_UL_expressions", "", settings, "expressions", settings,
+                          "expression_index", rows=5)
+
+    box = layout.box()
+    box.prop(settings, "show_options", icon='DOWNARROW_HLT' if settings.show_options
+             else 'RIGHTARROW', emboss=False)
+    if settings.show_options:
+        box.prop(settings, "preset")
+        box.prop(settings, "formulation")
+        box.prop(settings, "parts")
+        box.prop(settings, "prefix")
+        box.prop(settings, "replace_existing")
+
+
+CLASSES = (EXCLONE_UL_expressions, EXCLONE_PT_main)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)

@@ -1,0 +1,196 @@
+"""What the operators share: which meshes and landmarks go in, running the engine once per set
+of inputs (a cache), and the options applied to its result.
+
+Meshes are read in their local coordinates from the base mesh (modifiers are not applied, so
+vertex ids match the shape keys); a target with shape keys is read at its reference (basis) key.
+"""
+import hashlib
+from collections import OrderedDict
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from ..core.cloning import CloneSettings, clone_expressions
+from ..core.errors import ExCloneError
+from ..core.library import BUNDLED_LIBRARY, load_library
+from ..core.mesh import PolyMesh, vertex_parts
+from . import landmarks as stored_landmarks
+from . import mesh_io, preferences
+
+LIBRARY_DESCRIPTION = "the built-in ARKit library"
+CACHE_SIZE = 3
+
+
+@dataclass
+class Source:
+    description: str
+    mesh: PolyMesh
+    names: list
+    deltas: np.ndarray
+    obj: object = None            # None for the built-in library
+
+
+@dataclass
+class Run:
+    result: object                # core.cloning.CloneResult for every source expression
+    landmark_kind: str            # "automatic" (soft) or "edited" (hard constraints)
+    cached: bool
+
+
+def has_shape_keys(obj):
+    return obj.type == 'MESH' and obj.data.shape_keys is not None and \
+        len(obj.data.shape_keys.key_blocks) > 1
+
+
+def settings_of(context):
+    return context.scene.exclone
+
+
+def target_object(context):
+    """The scene's chosen target, else the active object (may be None or not a mesh)."""
+    return settings_of(context).target or context.active_object
+
+
+def source_object(context, target):
+    """The scene's chosen source object, else the one selected mesh with shape keys other than
+    the target. Raises ExCloneError if there is none or several."""
+    chosen = settings_of(context).source
+    if chosen is not None:
+        return chosen
+    candidates = [obj for obj in context.selected_objects if obj != target and has_shape_keys(obj)]
+    if not candidates:
+        raise ExCloneError("Select a source mesh with shape keys as well as the target "
+                           "(active), or enable Built-in Library")
+    if len(candidates) > 1:
+        raise ExCloneError("Several selected meshes have shape keys ("
+                           + ", ".join(obj.name for obj in candidates) + "): select only one source")
+    return candidates[0]
+
+
+@lru_cache(maxsize=1)
+def _library(path):
+    return load_library(path)
+
+
+def library_source():
+    library = _library(BUNDLED_LIBRARY)
+    return Source(LIBRARY_DESCRIPTION, library.mesh, library.names, library.deltas)
+
+
+def object_source(obj):
+    if obj.type != 'MESH':
+        raise ExCloneError(f"Source '{obj.name}' is not a mesh")
+    if not has_shape_keys(obj):
+        raise ExCloneError(f"Source '{obj.name}' has no shape keys to clone")
+    names, deltas = mesh_io.shape_keys_from_object(obj, what="source")
+    return Source(f"'{obj.name}'", basis_mesh(obj, "source"), names, deltas, obj)
+
+
+def resolve_source(context, target, use_library):
+    if use_library or settings_of(context).source_mode == 'LIBRARY':
+        return library_source()
+    obj = source_object(context, target)
+    if obj == target:
+        raise ExCloneError(f"'{obj.name}' is both source and target: choose another source")
+    return object_source(obj)
+
+
+def checked_target(obj):
+    if obj is None:
+        raise ExCloneError("Nothing selected: make the target head the active object")
+    if obj.type != 'MESH':
+        raise ExCloneError(f"Target '{obj.name}' is not a mesh")
+    return obj
+
+
+def basis_mesh(obj, role):
+    """The object's base mesh in local coordinates, at its reference key if it has shape keys
+    (what the new keys are made relative to)."""
+    mesh = mesh_io.mesh_from_object(obj, what=role)
+    key = obj.data.shape_keys
+    if key is not None:
+        co = np.empty(len(obj.data.vertices) * 3, dtype=np.float32)
+        key.reference_key.data.foreach_get("co", co)
+        mesh = PolyMesh(co.reshape(-1, 3).astype(np.float64), mesh.loop_totals, mesh.loop_vertices)
+    return mesh
+
+
+@lru_cache(maxsize=2)
+def _library_landmarks(path):
+    return stored_landmarks.detect(_library(path).mesh)
+
+
+def landmark_pairs(source, target_obj, target_mesh):
+    """None (the engine's automatic, soft landmarks) unless a side carries edited landmarks; then
+    {"source": ids, "target": ids} of the names both sides have, as hard constraints.
+    Raises ExCloneError for stale, off-surface or too few landmarks."""
+    sides = [(source.obj, "source"), (target_obj, "target")]
+    for obj, role in sides:
+        if obj is not None and stored_landmarks.IDS in obj:
+            stored_landmarks.checked(obj, role)
+    if not any(obj is not None and stored_landmarks.is_edited(obj) for obj, _ in sides):
+        return None
+
+    def ids_of(obj, mesh):
+        if obj is None:
+            return _library_landmarks(BUNDLED_LIBRARY)
+        return stored_landmarks.stored(obj) if stored_landmarks.IDS in obj \
+            else stored_landmarks.detect(mesh)
+
+    src, tgt = ids_of(source.obj, source.mesh), ids_of(target_obj, target_mesh)
+    common = [name for name in src if name in tgt]
+    if len(common) < 4:
+        raise ExCloneError(f"Source and target share only {len(common)} landmark names (at least "
+                           "4 needed): run Auto Landmarks on both")
+    return {"source": [src[n] for n in common], "target": [tgt[n] for n in common]}
+
+
+def _digest(*parts):
+    h = hashlib.sha1()
+    for part in parts:
+        h.update(np.ascontiguousarray(part).tobytes() if isinstance(part, np.ndarray)
+                 else repr(part).encode())
+    return h.hexdigest()
+
+
+_cache = OrderedDict()
+
+
+def clear_cache():
+    _cache.clear()
+
+
+def run_engine(source, target_mesh, landmarks, clone_settings, progress=None):
+    """The engine's result for every source expression, from the cache when the meshes, the
+    expressions, the landmarks and the settings are unchanged."""
+    key = _digest(source.mesh.vertices, source.mesh.loop_totals, source.mesh.loop_vertices,
+                  source.deltas, source.names, target_mesh.vertices, target_mesh.loop_totals,
+                  target_mesh.loop_vertices, landmarks, clone_settings)
+    kind = "automatic" if landmarks is None else "edited"
+    if key in _cache:
+        _cache.move_to_end(key)
+        return Run(_cache[key], kind, True)
+    result = clone_expressions(source.mesh, source.deltas, source.names, target_mesh,
+                               landmarks=landmarks, settings=clone_settings, progress=progress)
+    _cache[key] = result
+    while len(_cache) > CACHE_SIZE:
+        _cache.popitem(last=False)
+    return Run(result, kind, False)
+
+
+def clone_settings(context, preset, formulation):
+    if preset in ("", "DEFAULT"):
+        preset = preferences.default_preset(context)
+    return CloneSettings(preset=preset, formulation=formulation)
+
+
+def still_parts_mask(target_mesh, target_landmarks):
+    """Vertices of the parts without landmarks (they keep their shape with parts='STILL')."""
+    parts = vertex_parts(len(target_mesh.vertices), target_mesh.triangles())
+    return ~np.isin(parts, parts[np.asarray(target_landmarks)])
+
+
+def fit_text(result):
+    fit = result.quality.get("registration_mean_distance_rel")
+    return "" if fit is None else f"fit error {100 * fit:.2g}%"
