@@ -3,7 +3,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.sparse as sp
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
@@ -189,8 +188,8 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     else:
         mapped = np.zeros(len(tgt_region), dtype=bool)
     pairs = triangle_correspondence(reg.vertices, src_region, tgt_v, tgt_region, max_distance,
-                                    src_sign, tgt_sign).matrix(len(tgt_region), len(src_region))
-    pairs = sp.diags((~mapped).astype(float)) @ pairs                 # only where the map is not
+                                    src_sign, tgt_sign, wanted=~mapped)
+    pairs = pairs.matrix(len(tgt_region), len(src_region))
     pair_weight = np.asarray(pairs.sum(axis=1)).ravel()
     weights = np.where(mapped, 1.0, pair_weight)
     if not np.any(weights > 0):
@@ -200,24 +199,28 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     # 4. Transfer: source gradients per target triangle, one factorisation for all expressions
     report(0.8, "transfer")
     aligned_deltas = deltas @ rot.T * scale
-    per_vertex = np.moveaxis(aligned_deltas, 0, 1)                              # (n_s, E, 3)
+    # the source at each mapped target vertex, sampled once: rest position and displacements
+    anchors = np.flatnonzero(vertex_map.valid)
+    rest_at = np.zeros((len(tgt_v), 3))
+    moves_at = np.zeros((len(deltas), len(tgt_v), 3))
+    rest_at[anchors] = vertex_map.sample(aligned, src_region, anchors)
+    moves_at[:, anchors] = np.moveaxis(
+        vertex_map.sample(np.moveaxis(aligned_deltas, 0, 1), src_region, anchors), 1, 0)
     wanted = np.zeros((len(deltas), len(tgt_region), 3, 3))
     if mapped.any():
-        corners = tgt_region[mapped].ravel()
-        rest = vertex_map.sample(aligned, src_region, corners).reshape(-1, 3, 3)
-        moved = vertex_map.sample(per_vertex, src_region, corners)              # (3m, E, 3)
-        moved = np.moveaxis(moved, 1, 0).reshape(len(deltas), -1, 3, 3) + rest
-        wanted[:, mapped] = deformation.corner_gradients(rest, moved)
+        corners = tgt_region[mapped]
+        rest = rest_at[corners]                                                 # (m, 3, 3)
+        wanted[:, mapped] = deformation.corner_gradients(rest, rest + moves_at[:, corners])
     paired = ~mapped & (pair_weight > 0)
     if paired.any():
-        source_gradients = deformation.full_gradients(aligned, aligned + aligned_deltas, src_region)
-        flat = np.moveaxis(source_gradients, 0, 1).reshape(len(src_region), -1)     # (Ts, E*9)
-        mean = (pairs[paired] @ flat) / pair_weight[paired, None]
+        rows = pairs[paired]
+        used = np.unique(rows.indices)              # only the source triangles some pair uses
+        gradients = deformation.full_gradients(aligned, aligned + aligned_deltas, src_region[used])
+        flat = np.moveaxis(gradients, 0, 1).reshape(len(used), -1)                  # (U, E*9)
+        mean = (rows[:, used] @ flat) / pair_weight[paired, None]
         wanted[:, paired] = np.moveaxis(mean.reshape(-1, len(deltas), 3, 3), 1, 0)
     transfer = Transfer(tgt_v, tgt_region, weights, settings.formulation)
-    anchors = np.flatnonzero(vertex_map.valid)
-    anchor_disp = np.moveaxis(vertex_map.sample(per_vertex, src_region, anchors), 1, 0)
-    result = transfer(wanted, anchor_disp, anchors)
+    result = transfer(wanted, moves_at[:, anchors], anchors)
     _follow_degenerate(result, tgt_v, tgt_all, tgt_region)
     lap("transfer")
     if not np.all(np.isfinite(result)):

@@ -55,16 +55,25 @@ def _matches(from_vertices, from_tris, from_normals, to_surface, to_normals, sam
 
 
 def triangle_correspondence(source_vertices, source_triangles, target_vertices, target_triangles,
-                            max_distance, source_normal_sign=1.0, target_normal_sign=1.0):
-    """Weighted triangle pairs between a registered source and the target (same space)."""
+                            max_distance, source_normal_sign=1.0, target_normal_sign=1.0,
+                            wanted=None):
+    """Weighted triangle pairs between a registered source and the target (same space).
+
+    wanted: optional (T_target,) mask of the target triangles that need pairs (default: all).
+    """
+    wanted = np.ones(len(target_triangles), dtype=bool) if wanted is None else wanted
     src_n = source_normal_sign * triangle_normals(source_vertices, source_triangles)
     tgt_n = target_normal_sign * triangle_normals(target_vertices, target_triangles)
     src_surface = TriangleSurface(source_vertices, source_triangles)
     tgt_surface = TriangleSurface(target_vertices, target_triangles)
-    t_from, s_to = _matches(target_vertices, target_triangles, tgt_n, src_surface, src_n,
+    ids = np.flatnonzero(wanted)
+    t_from, s_to = _matches(target_vertices, target_triangles[ids], tgt_n[ids], src_surface, src_n,
                             SAMPLES, max_distance)
+    t_from = ids[t_from]
     s_from, t_to = _matches(source_vertices, source_triangles, src_n, tgt_surface, tgt_n,
                             SAMPLES[:1], max_distance)
+    keep = wanted[t_to]
+    s_from, t_to = s_from[keep], t_to[keep]
     # each target sample carries 1/k of its triangle; a source centroid weighs like one sample
     weights = np.r_[np.full(len(t_from), 1.0 / len(SAMPLES)), np.full(len(s_from), 1.0 / len(SAMPLES))]
     return Correspondence(np.r_[t_from, t_to], np.r_[s_to, s_from], weights)

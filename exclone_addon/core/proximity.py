@@ -64,6 +64,8 @@ class TriangleSurface:
             parts = [self.closest(points[i:i + chunk], chunk) for i in range(0, len(points), chunk)]
             return tuple(np.concatenate(p) for p in zip(*parts))
         m = len(points)
+        if m == 0:
+            return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3))
         # threads only pay off for large queries; small ones lose more to the pool's start-up
         _, cand = self.tree.query(points, k=self.k, workers=-1 if m > 5000 else 1)
         cand = cand.reshape(m, -1)
