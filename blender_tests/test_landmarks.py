@@ -258,3 +258,14 @@ def test_automatic_landmark_near_hand_checked(fixtures, fixture_errors, head, na
     error = fixture_errors[head][name]
     assert error <= tolerance, (f"{head} {name}: {100 * error:.2f}% of the diagonal from the "
                                 f"hand-checked vertex (tolerance {100 * tolerance:.1f}%)")
+
+
+def test_shipped_landmark_template_is_current():
+    # the template file is derived data: stale after a heuristic or library change
+    from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template
+    shipped = json.loads(TEMPLATE_FILE.read_text())["canonical_positions"]
+    fresh = compute_template()
+    assert set(shipped) == set(fresh), "run scripts/make_landmark_template.py"
+    for name, position in fresh.items():
+        assert np.allclose(shipped[name], position, atol=1e-6), (
+            f"{name} changed: run scripts/make_landmark_template.py")

@@ -6,7 +6,9 @@ vertex per height bin near x = 0) and horizontal profiles through the nose tip a
 Then the rest by an RBF with a linear term from a template face's heuristic points to the mesh's,
 snapped to the mesh. Points that do not exist (a mask has no back of head, no ear tips) are left out.
 """
+import json
 from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
@@ -228,9 +230,15 @@ def _snap_symmetric(found, q, candidates):
     return {n: int(candidates[i]) for n, i in zip(names, ids)}
 
 
-@lru_cache(maxsize=1)
-def _template():
-    """The bundled library's face as template: its canonical landmark positions by name."""
+TEMPLATE_FILE = Path(__file__).resolve().parent.parent / "data" / "landmark_template.json"
+
+
+def compute_template():
+    """The bundled library's face as template: its canonical landmark positions by name.
+
+    Shipped precomputed in TEMPLATE_FILE (scripts/make_landmark_template.py writes it; a test
+    checks it is current), since computing it costs a second on every first clone.
+    """
     from .library import load_library
     lib = load_library()
     verts = lib.mesh.vertices
@@ -240,6 +248,12 @@ def _template():
     ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items()})
     q = frame.to_canonical(verts)
     return {name: q[v] for name, v in ids.items()}
+
+
+@lru_cache(maxsize=1)
+def _template():
+    data = json.loads(TEMPLATE_FILE.read_text())
+    return {name: np.array(position) for name, position in data["canonical_positions"].items()}
 
 
 def automatic_landmarks(vertices, triangles, frame=None):

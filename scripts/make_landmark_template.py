@@ -1,0 +1,27 @@
+"""Write exclone_addon/data/landmark_template.json: the bundled face's landmarks as the template
+that places the non-heuristic landmarks on other faces (core.landmarks). Run it after changing the
+landmark heuristics or the bundled library; blender_tests/test_landmarks.py checks it is current.
+
+    .venv/bin/python scripts/make_landmark_template.py
+"""
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template  # noqa: E402
+
+
+def main():
+    template = compute_template()
+    data = {
+        "about": "canonical positions (+X left, +Y up, +Z forward; library units) of the bundled "
+                 "ICT-FaceKit face's landmarks; made by scripts/make_landmark_template.py",
+        "canonical_positions": {name: [round(float(c), 9) for c in p] for name, p in template.items()},
+    }
+    TEMPLATE_FILE.write_text(json.dumps(data, indent=1) + "\n")
+    print(f"make_landmark_template: wrote {len(template)} landmarks to {TEMPLATE_FILE}")
+
+
+if __name__ == "__main__":
+    main()
