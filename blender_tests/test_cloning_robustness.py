@@ -1,0 +1,70 @@
+"""The pipeline on awkward but legal meshes: degenerate triangles, duplicate vertices, an
+unreferenced vertex, a separate part the source does not cover, quads and n-gons."""
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from exclone_addon.core.cloning import clone_expressions
+from exclone_addon.core.errors import ExCloneError
+from exclone_addon.core.library import load_library
+from exclone_addon.core.mesh import PolyMesh, read_obj
+
+DEMO_HEAD = Path(__file__).resolve().parents[1] / "exclone_addon" / "data" / "demo_head.obj"
+NAMES = ("jawOpen", "eyeBlink_L")
+
+
+@pytest.fixture(scope="module")
+def source():
+    lib = load_library().subset(list(NAMES))
+    return lib.mesh, lib.deltas
+
+
+def awkward_head():
+    """The demo head (quads) plus: a zero-area triangle, a duplicate of vertex 0 used by a
+    degenerate triangle only, an unreferenced vertex, and a detached pentagon far behind."""
+    head = read_obj(DEMO_HEAD)
+    v = head.vertices
+    n = len(v)
+    extra = np.array([v[0],                                    # n: duplicate of vertex 0
+                      [9.0, 9.0, 9.0]])                        # n+1: unreferenced
+    ring = v.mean(axis=0) + [0.0, 0.0, -3.0] + 0.1 * np.array(
+        [[np.cos(a), np.sin(a), 0.0] for a in np.linspace(0, 2 * np.pi, 5, endpoint=False)])
+    faces = head.faces() + [np.array([0, 1, 1]),               # two corners the same
+                            np.array([0, n, 1]),               # duplicate vertex: zero area
+                            np.arange(n + 2, n + 7)]           # detached pentagon (n-gon)
+    return PolyMesh.from_faces(np.vstack([v, extra, ring]), faces), n
+
+
+def test_awkward_target_gives_finite_keys_and_leaves_the_rest_alone(source):
+    mesh, deltas = source
+    target, n = awkward_head()
+    result = clone_expressions(mesh, deltas, list(NAMES), target)
+    assert np.isfinite(result.deltas).all()
+    assert np.all(result.deltas[:, n + 1] == 0.0), "an unreferenced vertex must not move"
+    assert np.abs(result.deltas[:, n + 2:]).max() < 1e-9, "a part the source does not cover stays"
+    # the duplicate of vertex 0 sits on degenerate triangles only: it follows its original
+    assert np.allclose(result.deltas[:, n], result.deltas[:, 0])
+    # and the head itself still opens its mouth
+    assert np.linalg.norm(result.deltas[0, :n], axis=1).max() > 0.1
+
+
+def test_source_with_degenerate_triangles_and_unreferenced_vertices(source):
+    mesh, deltas = source
+    v = np.vstack([mesh.vertices, mesh.vertices[:1], [[50.0, 50.0, 50.0]]])
+    n = len(mesh.vertices)
+    faces = mesh.faces() + [np.array([0, 1, 1]), np.array([0, n, 1])]
+    padded = np.concatenate([deltas, np.zeros((len(deltas), 2, 3))], axis=1)
+    padded[:, n + 1] = 1e3          # an unreferenced source vertex's delta must not matter
+    result = clone_expressions(PolyMesh.from_faces(v, faces), padded, list(NAMES),
+                               read_obj(DEMO_HEAD))
+    assert np.isfinite(result.deltas).all()
+    assert np.abs(result.deltas).max() < 1.0   # demo head is ~2.6 units wide: no blow-up
+
+
+def test_mismatched_deltas_are_a_clear_error(source):
+    mesh, deltas = source
+    with pytest.raises(ExCloneError, match="expected"):
+        clone_expressions(mesh, deltas[:, :100], list(NAMES), read_obj(DEMO_HEAD))
+    with pytest.raises(ExCloneError, match="names"):
+        clone_expressions(mesh, deltas, ["only_one"], read_obj(DEMO_HEAD))
