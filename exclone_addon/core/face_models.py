@@ -1,0 +1,278 @@
+"""Face detection and 468-point face landmarks from MediaPipe's models, run by OpenCV's dnn module.
+
+The two TFLite models come from the mediapipe 0.10.21 wheel (extracted by scripts/setup.sh into
+exclone_addon/models/); mediapipe itself is never imported. Pre- and post-processing follow
+MediaPipe's graphs (modules/face_detection/face_detection_short_range.pbtxt + face_detection.pbtxt,
+modules/face_landmark/face_landmark_cpu.pbtxt, face_detection_front_detection_to_roi.pbtxt and
+face_landmark_landmarks_to_roi.pbtxt):
+
+- BlazeFace short range: the whole image letterboxed into 128x128 RGB in [-1, 1]; 896 SSD anchors
+  (strides 8, 16, 16, 16, two anchors per layer, fixed size 1); 16 regressed values per anchor
+  (box centre x, y, width, height, then six keypoints x, y) in units of 1/128 of the input; a
+  logit score per anchor; weighted non-maximum suppression at IoU 0.3.
+- FaceMesh: a square, rotated region of interest warped to 192x192 RGB in [0, 1]; 1404 values
+  (468 x, y, z in units of the 192-pixel crop) and one face-presence logit.
+
+Pixel coordinates everywhere are OpenCV's: the centre of pixel (column i, row j) is (i, j).
+"""
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from .errors import ExCloneError
+
+MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+DETECTOR_MODEL = "face_detection_short_range.tflite"
+LANDMARK_MODEL = "face_landmark.tflite"
+
+DETECTOR_SIZE = 128
+LANDMARK_SIZE = 192
+NUM_LANDMARKS = 468
+# MediaPipe's thresholds: detection score, NMS overlap, face presence (face_landmark_cpu.pbtxt).
+MIN_DETECTION_SCORE = 0.5
+NMS_IOU_THRESHOLD = 0.3
+FACE_PRESENCE_THRESHOLD = 0.5
+# The region of interest is the face box (or the landmarks' box) enlarged 1.5 times, square.
+ROI_SCALE = 1.5
+
+# BlazeFace keypoints, in the order the model outputs them. In an upright face the first eye is the
+# one on the image's left (the subject's right eye).
+DETECTION_KEYPOINTS = ("eye_image_left", "eye_image_right", "nose_tip", "mouth_centre",
+                       "ear_image_left", "ear_image_right")
+
+# FaceMesh points that define the ROI's rotation: the outer eye corners (image left, image right).
+# MediaPipe uses 33 -> 133 (both corners of one eye); both eyes give a longer, steadier baseline.
+ROI_ROTATION_POINTS = (33, 263)
+
+# The 68 points of the iBUG 300-W annotation (0-based: jaw 0-16, brows 17-26, nose 27-35, eyes
+# 36-47, outer lips 48-59, inner lips 60-67) as FaceMesh indices. From Peizhi Yan's published
+# MediaPipe-to-dlib correspondence (github.com/PeizhiYan/Mediapipe_2_Dlib_Landmarks); where it
+# averages two FaceMesh points (jaw 3, 4, 12; nose 27, 28) one of them is taken, keeping the jaw
+# symmetric (132/361, 58/288 are mirror pairs). Checked by drawing it on a photograph.
+IBUG68_FROM_MEDIAPIPE = np.array([
+    127, 234, 93, 132, 58, 136, 150, 176, 152, 400, 379, 365, 288, 361, 323, 454, 356,  # jaw
+    70, 63, 105, 66, 107,                                  # brow, image left (subject's right)
+    336, 296, 334, 293, 300,                               # brow, image right
+    168, 197, 5, 4,                                        # nose bridge down to the tip
+    75, 97, 2, 326, 305,                                   # nostrils, image left to right
+    33, 160, 158, 133, 153, 144,                           # eye, image left: outer corner first
+    362, 385, 387, 263, 373, 380,                          # eye, image right: inner corner first
+    61, 39, 37, 0, 267, 269, 291, 321, 314, 17, 84, 91,    # outer lips from the image-left corner
+    78, 82, 13, 312, 308, 317, 14, 87,                     # inner lips from the image-left corner
+], dtype=np.intp)
+IBUG68_FROM_MEDIAPIPE.flags.writeable = False
+
+
+@dataclass(frozen=True)
+class FaceDetection:
+    """One face found by the detector, in image pixels."""
+    box: np.ndarray        # (4,) x_min, y_min, x_max, y_max
+    score: float           # 0..1
+    keypoints: np.ndarray  # (6, 2) x, y in DETECTION_KEYPOINTS order
+
+
+@dataclass(frozen=True)
+class FaceRoi:
+    """A square region of the image, turned so that the face in it is upright.
+
+    angle: radians from the image's x axis to the region's x axis, clockwise on screen (the image's
+    y axis points down), i.e. the region's x axis is (cos angle, sin angle) in pixels.
+    """
+    centre: np.ndarray  # (2,) x, y in pixels
+    size: float         # side length in pixels
+    angle: float
+
+    def crop_to_image(self, crop_size):
+        """2x3 affine matrix taking pixel coordinates of a crop_size x crop_size crop to the image's."""
+        k = self.size / crop_size
+        c, s = np.cos(self.angle), np.sin(self.angle)
+        linear = k * np.array([[c, -s], [s, c]])
+        # Pixel centres sit half a pixel in from the edges of both the crop and the region.
+        offset = self.centre + linear @ np.full(2, 0.5 - crop_size / 2.0)
+        return np.hstack([linear, offset[:, None]])
+
+
+def _load_net(name, models_dir):
+    path = Path(models_dir) / name
+    if not path.is_file():
+        raise ExCloneError(f"face model {name} not found in {path.parent}; run scripts/setup.sh")
+    try:
+        net = cv2.dnn.readNetFromTFLite(str(path))
+    except cv2.error as error:
+        raise ExCloneError(f"face model {path} could not be loaded ({error.err}); "
+                           "run scripts/setup.sh again") from None
+    net.setPreferableBackend(cv2.dnn.DNN_BACKEND_OPENCV)
+    net.setPreferableTarget(cv2.dnn.DNN_TARGET_CPU)
+    return net
+
+
+def _check_image(image_bgr):
+    image = np.asarray(image_bgr)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 2:
+        raise ExCloneError(f"expected an 8-bit BGR image of shape (height, width, 3), "
+                           f"got {image.dtype} {image.shape}")
+    return image
+
+
+def _sigmoid(x):
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def ssd_anchor_centres():
+    """(896, 2) anchor centres of BlazeFace short range, in units of the 128-pixel input.
+
+    MediaPipe's SsdAnchorsCalculator with num_layers 4, strides 8, 16, 16, 16, aspect ratio 1 plus
+    one interpolated scale (two anchors per layer and cell), fixed anchor size: consecutive layers
+    with the same stride share one grid, so the 16x16 grid has 2 anchors per cell and the 8x8 grid
+    6; the order is row, column, anchor.
+    """
+    centres = []
+    for stride, anchors_per_cell in ((8, 2), (16, 6)):
+        cells = DETECTOR_SIZE // stride
+        ys, xs = np.mgrid[0:cells, 0:cells]
+        grid = (np.stack([xs.ravel(), ys.ravel()], axis=1) + 0.5) / cells
+        centres.append(np.repeat(grid, anchors_per_cell, axis=0))
+    return np.concatenate(centres) * DETECTOR_SIZE
+
+
+def _iou(box, boxes):
+    top_left = np.maximum(box[:2], boxes[:, :2])
+    bottom_right = np.minimum(box[2:], boxes[:, 2:])
+    overlap = np.prod(np.clip(bottom_right - top_left, 0.0, None), axis=1)
+    area = np.prod(box[2:] - box[:2])
+    areas = np.prod(boxes[:, 2:] - boxes[:, :2], axis=1)
+    return overlap / np.maximum(area + areas - overlap, 1e-12)
+
+
+def non_max_suppression(boxes, scores, keypoints, iou_threshold=NMS_IOU_THRESHOLD, weighted=True):
+    """Merges overlapping detections; returns FaceDetections by decreasing score.
+
+    weighted (MediaPipe's choice for faces): each kept detection is the score-weighted mean of the
+    best remaining one and all that overlap it by more than iou_threshold, which steadies the box
+    from frame to frame; otherwise the overlapping ones are simply dropped.
+    """
+    order = np.argsort(-scores, kind="stable")
+    boxes, scores, keypoints = boxes[order], scores[order], keypoints[order]
+    remaining = np.arange(len(scores))
+    detections = []
+    while remaining.size:
+        best = remaining[0]
+        overlapping = _iou(boxes[best], boxes[remaining]) > iou_threshold
+        overlapping[0] = True  # a zero-area box does not overlap itself
+        group = remaining[overlapping]
+        if weighted:
+            weights = scores[group] / scores[group].sum()
+            box = weights @ boxes[group]
+            points = np.tensordot(weights, keypoints[group], axes=1)
+        else:
+            box, points = boxes[best], keypoints[best]
+        detections.append(FaceDetection(box=box, score=float(scores[best]), keypoints=points))
+        remaining = remaining[~overlapping]
+    return detections
+
+
+class FaceDetector:
+    """BlazeFace short range: faces within about two metres of the camera. Loads the model once."""
+
+    def __init__(self, models_dir=MODELS_DIR, min_score=MIN_DETECTION_SCORE, weighted_nms=True):
+        self.net = _load_net(DETECTOR_MODEL, models_dir)
+        self.min_score = min_score
+        self.weighted_nms = weighted_nms
+        self.anchors = ssd_anchor_centres()
+
+    def detect(self, image_bgr):
+        """Faces in an 8-bit BGR image, best first (an empty list when there is none)."""
+        image = _check_image(image_bgr)
+        height, width = image.shape[:2]
+        # Letterbox: keep the aspect ratio, pad with black around the centre (as MediaPipe does).
+        scale = DETECTOR_SIZE / max(height, width)
+        new_w, new_h = max(1, round(width * scale)), max(1, round(height * scale))
+        left, top = (DETECTOR_SIZE - new_w) // 2, (DETECTOR_SIZE - new_h) // 2
+        resized = cv2.resize(image, (new_w, new_h), interpolation=cv2.INTER_AREA)
+        tensor_image = cv2.copyMakeBorder(resized, top, DETECTOR_SIZE - new_h - top, left,
+                                          DETECTOR_SIZE - new_w - left, cv2.BORDER_CONSTANT, value=0)
+        blob = cv2.dnn.blobFromImage(tensor_image, 1.0 / 127.5, mean=(127.5, 127.5, 127.5), swapRB=True)
+        self.net.setInput(blob)
+        logits, regressors = self.net.forward(["classificators", "regressors"])
+        scores = _sigmoid(np.clip(logits.reshape(-1).astype(np.float64), -100.0, 100.0))
+        keep = scores >= self.min_score
+        if not keep.any():
+            return []
+        raw = regressors.reshape(-1, 16)[keep].astype(np.float64)
+        anchors = self.anchors[keep]
+        centres = raw[:, 0:2] + anchors
+        half_sizes = raw[:, 2:4] / 2.0
+        keypoints = raw[:, 4:16].reshape(-1, 6, 2) + anchors[:, None, :]
+        # Back from the 128-pixel tensor (continuous coordinates) to image pixel centres.
+        to_image_scale = np.array([width / new_w, height / new_h])
+        shift = np.array([left, top])
+        boxes = np.hstack([(centres - half_sizes - shift) * to_image_scale,
+                           (centres + half_sizes - shift) * to_image_scale]) - 0.5
+        keypoints = (keypoints - shift) * to_image_scale - 0.5
+        return non_max_suppression(boxes, scores[keep], keypoints, weighted=self.weighted_nms)
+
+
+def _square_roi(x_min, y_min, x_max, y_max, eye_from, eye_to):
+    centre = np.array([(x_min + x_max) / 2.0, (y_min + y_max) / 2.0])
+    direction = np.asarray(eye_to, float) - np.asarray(eye_from, float)
+    angle = float(np.arctan2(direction[1], direction[0]))
+    size = float(max(x_max - x_min, y_max - y_min)) * ROI_SCALE
+    return FaceRoi(centre=centre, size=size, angle=angle)
+
+
+def roi_from_detection(detection):
+    """The landmark model's region for a detected face: its box enlarged 1.5 times, square,
+    turned so that the eyes are level."""
+    return _square_roi(*detection.box, detection.keypoints[0], detection.keypoints[1])
+
+
+def roi_from_landmarks(landmarks):
+    """The region for the next video frame from this frame's (468, 2 or 3) landmarks: their box
+    enlarged 1.5 times (room for the head to move), square, turned so that the eyes are level."""
+    points = np.asarray(landmarks, float)[:, :2]
+    (x_min, y_min), (x_max, y_max) = points.min(axis=0), points.max(axis=0)
+    return _square_roi(x_min, y_min, x_max, y_max, *points[list(ROI_ROTATION_POINTS)])
+
+
+class FaceLandmarker:
+    """FaceMesh: 468 face points in a region of interest. Loads the model once."""
+
+    def __init__(self, models_dir=MODELS_DIR):
+        self.net = _load_net(LANDMARK_MODEL, models_dir)
+        self.output_names = self.net.getUnconnectedOutLayersNames()
+
+    def crop(self, image_bgr, roi):
+        """The 192x192 BGR image the model sees for this region (edges replicated outside the image)."""
+        image = _check_image(image_bgr)
+        return cv2.warpAffine(image, roi.crop_to_image(LANDMARK_SIZE), (LANDMARK_SIZE, LANDMARK_SIZE),
+                              flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_REPLICATE)
+
+    def landmarks(self, image_bgr, roi):
+        """(468, 3) landmarks and the face-presence score (0..1) for a region of an 8-bit BGR image.
+
+        x, y are image pixels; z is depth relative to the face's centre, in pixels at the same
+        scale, smaller towards the camera. A score below FACE_PRESENCE_THRESHOLD means there is no
+        face in the region and the points are meaningless.
+        """
+        crop = self.crop(image_bgr, roi)
+        blob = cv2.dnn.blobFromImage(crop, 1.0 / 255.0, swapRB=True)
+        self.net.setInput(blob)
+        raw_points, presence_logit = self._split_outputs(self.net.forward(self.output_names))
+        points = raw_points.reshape(NUM_LANDMARKS, 3).astype(np.float64)
+        # Model output is in continuous crop coordinates (0..192); shift to pixel centres first.
+        matrix = roi.crop_to_image(LANDMARK_SIZE)
+        xy = (points[:, :2] - 0.5) @ matrix[:, :2].T + matrix[:, 2]
+        z = points[:, 2] * (roi.size / LANDMARK_SIZE)
+        return np.column_stack([xy, z]), float(_sigmoid(presence_logit))
+
+    @staticmethod
+    def _split_outputs(outputs):
+        # Told apart by size: OpenCV names the outputs after internal layers, not the model's.
+        by_size = {out.size: out for out in outputs}
+        if set(by_size) != {NUM_LANDMARKS * 3, 1}:
+            raise ExCloneError(f"{LANDMARK_MODEL} is not the expected FaceMesh model "
+                               f"(outputs of sizes {sorted(by_size)}); run scripts/setup.sh again")
+        return by_size[NUM_LANDMARKS * 3].reshape(-1), float(by_size[1].reshape(-1)[0])
