@@ -8,7 +8,7 @@ face_landmark_landmarks_to_roi.pbtxt):
 
 - BlazeFace short range: the whole image letterboxed into 128x128 RGB in [-1, 1]; 896 SSD anchors
   (strides 8, 16, 16, 16, two anchors per layer, fixed size 1); 16 regressed values per anchor
-  (box centre x, y, width, height, then six keypoints x, y) in units of 1/128 of the input; a
+  (box centre x, y, width, height, then six keypoints x, y) in pixels of the 128x128 input; a
   logit score per anchor; weighted non-maximum suppression at IoU 0.3.
 - FaceMesh: a square, rotated region of interest warped to 192x192 RGB in [0, 1]; 1404 values
   (468 x, y, z in units of the 192-pixel crop) and one face-presence logit.
@@ -121,7 +121,7 @@ def _sigmoid(x):
 
 
 def ssd_anchor_centres():
-    """(896, 2) anchor centres of BlazeFace short range, in units of the 128-pixel input.
+    """(896, 2) anchor centres of BlazeFace short range, in pixels of the 128x128 input.
 
     MediaPipe's SsdAnchorsCalculator with num_layers 4, strides 8, 16, 16, 16, aspect ratio 1 plus
     one interpolated scale (two anchors per layer and cell), fixed anchor size: consecutive layers
