@@ -35,8 +35,9 @@ TEMPLATE_IBUG = {
 NAMES = HEURISTIC + tuple(TEMPLATE_IBUG)
 # The heuristic points that carry the template's: the ones that stay put when the face turns
 # (the crown, the back of the head and the alar creases slide along flat or shallow shapes).
-RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip", "chin",
-               "eye_inner_left", "eye_inner_right", "ear_tip_left", "ear_tip_right")
+RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip",
+               "eye_inner_left", "eye_inner_right", "eye_outer_left", "eye_outer_right",
+               "ear_tip_left", "ear_tip_right")
 
 
 def plane_section(points, triangles, axis, value):
@@ -133,6 +134,19 @@ def _crease(profile, start, direction, near, far, prominence, smooth_bins, cliff
     return nearest_real(window[np.argmax(bend[window])])
 
 
+def _outer_eye_corner(q, triangles, inner, direction, nose_length, bin_size, cliff):
+    """Walking out from the inner eye corner at its height, the opening (a socket, an eyeball,
+    a hole) ends where the front surface rises back by a cliff: the outer corner. None if no
+    such rise (the eye region has no opening to find)."""
+    centres, z, pts = _profile(plane_section(q, triangles, 1, inner[1]), 0, bin_size)
+    dist = (centres - inner[0]) * direction
+    window = np.flatnonzero((dist >= 0.3 * nose_length) & (dist <= 1.0 * nose_length) & ~np.isnan(z))
+    if direction < 0:
+        window = window[::-1]
+    rises = np.flatnonzero(np.diff(z[window]) > cliff)
+    return pts[window[rises[0] + 1]] if len(rises) else None
+
+
 def _front_most(profile, low, high):
     """The profile's front-most point with walk coordinate in [low, high], or None."""
     centres, z, pts = profile
@@ -211,6 +225,11 @@ def heuristic_landmarks(vertices, triangles, frame=None):
             for name, point in ((f"eye_inner_{side}", corner), (f"alar_{side}", crease)):
                 if point is not None:
                     found[name] = point
+            if corner is not None:
+                outer = _outer_eye_corner(q, front_tris, corner, direction, nose_length,
+                                          bin_size, 0.01 * diag)
+                if outer is not None:
+                    found[f"eye_outer_{side}"] = outer
     return _snap_symmetric(found, q, used)
 
 
@@ -245,7 +264,9 @@ def compute_template():
     tris = lib.mesh.triangles()
     frame = face_frame(verts, tris)
     ids = heuristic_landmarks(verts, tris, frame)
-    ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items()})
+    # template-only points from the iBUG annotation; points the heuristics also find keep the
+    # heuristics' version, so template and target are placed by the same rule
+    ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items() if name not in ids})
     q = frame.to_canonical(verts)
     return {name: q[v] for name, v in ids.items()}
 
@@ -277,7 +298,7 @@ def automatic_landmarks(vertices, triangles, frame=None):
     # snap onto the parts the heuristic points are on (not eyeballs, teeth or lashes)
     parts = vertex_parts(len(vertices), triangles)
     on_face = np.flatnonzero(np.isin(parts, parts[list(found.values())]))
-    extra = [n for n in TEMPLATE_IBUG if n in template]
+    extra = [n for n in TEMPLATE_IBUG if n in template and n not in found]
     mapped = rbf(np.array([template[n] for n in extra]))
     found.update(_snap_symmetric(dict(zip(extra, mapped)), q, on_face))
     names = [n for n in NAMES if n in found]
