@@ -84,6 +84,7 @@ def inputs(tmp_path, head):
     write_obj(good / "neutral.obj", head)
     write_obj(good / "jawOpen.obj", PolyMesh(head.vertices + 0.1, head.loop_totals, head.loop_vertices))
     (folder / "head.stl").write_text("solid head\nendsolid head\n")
+    (folder / "no_meshes").mkdir()
     return folder
 
 
@@ -120,6 +121,12 @@ BAD_INPUTS = {
                                           "refusing to overwrite the input file"),
     "out not a blend": (["--out", "{in}/result.txt"], "--out must name a .blend file"),
     "unknown option": (["--colour", "red"], "unrecognized arguments: --colour red"),
+    "--out with several targets": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend",
+                                    "--out", "{in}/r.blend"], "--out names one file"),
+    "--jobs with one target": (["--jobs", "2"], "--jobs is for several targets"),
+    "--jobs 0": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend", "--jobs", "0"],
+                 "--jobs must be at least 1"),
+    "target folder without meshes": (["--target", "{in}/no_meshes"], "holds no .blend, .obj"),
 }
 
 
@@ -309,3 +316,47 @@ def test_run_with_the_reports_landmarks_shapes_and_export(default_run, tmp_path,
     assert names == ["jawOpen", "eyeBlink_L"]
     jaw = read_obj(tmp_path / "objs" / "jawOpen.obj")
     assert np.abs(jaw.vertices - (head.vertices + deltas[0])).max() <= 1e-5
+
+
+# -- batches of several targets ------------------------------------------------------------------
+
+def test_output_names_are_unique_per_target():
+    assert batch.output_stems(["a/head.obj", "b/head.obj", "c/head.blend:Face", "head.fbx"]) == [
+        "head", "head-2", "head_Face", "head-3"]
+
+
+def test_batch_writes_one_output_per_target_and_skips_a_bad_one(tmp_path, head):
+    """A folder (two OBJs, one of them broken) plus a .blend object, two processes at once: the
+    good targets get their files, the bad one is reported, the summary lists all three."""
+    folder = tmp_path / "heads"
+    folder.mkdir()
+    (folder / "head.obj").write_bytes(DEMO_HEAD.read_bytes())
+    (folder / "broken.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")   # no faces
+    save_blend(tmp_path / "scene.blend", [("face", head, {})])
+    before = hashes(folder, tmp_path / "scene.blend")
+    result = run_cli("--target", folder, "--target", f"{tmp_path / 'scene.blend'}:face",
+                     "--jobs", "2", "--shapes", "jawOpen,eyeBlink_L", "--out-dir", "results",
+                     cwd=tmp_path)
+    assert result.returncode == 1
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "batch_clone: error: 1 of 3 targets failed (first: "), result.stderr
+    assert "broken.obj: target" in lines[0] and "is empty" in lines[0]
+    assert hashes(folder, tmp_path / "scene.blend") == before
+
+    out = tmp_path / "results"
+    assert sorted(p.name for p in out.iterdir()) == [
+        "batch_report.json", "head_exclone.blend", "head_exclone.json", "head_exclone.png",
+        "scene_face_exclone.blend", "scene_face_exclone.json", "scene_face_exclone.png"]
+    summary = json.loads((out / "batch_report.json").read_text())
+    assert (summary["succeeded"], summary["failed"], summary["jobs"]) == (2, 1, 2)
+    status = {Path(entry["target"]).name: entry["status"] for entry in summary["targets"]}
+    assert status == {"broken.obj": "failed", "head.obj": "ok", "scene.blend:face": "ok"}
+    for name in ("head_exclone.blend", "scene_face_exclone.blend"):
+        with bpy.data.libraries.load(str(out / name)) as (src, dst):
+            dst.objects = src.objects
+        names, deltas = mesh_io.shape_keys_from_object(dst.objects[0])
+        assert names == ["jawOpen", "eyeBlink_L"]
+        assert np.linalg.norm(deltas[0], axis=1).max() > 0.01 * np.ptp(head.vertices, axis=0).max()
+    print(f"batch of 3 targets, 2 jobs: {summary['seconds']} s; per target: "
+          + ", ".join(f"{Path(e['target']).name} {e['seconds']} s" for e in summary["targets"]))

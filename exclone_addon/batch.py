@@ -12,9 +12,11 @@ import math
 import os
 import platform
 import re
+import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,8 +31,11 @@ from .core.errors import ExCloneError
 from .core.mesh import MeshError, PolyMesh, check_mesh, read_obj, write_obj
 
 DEMO_HEAD = Path(__file__).resolve().parent / "data" / "demo_head.obj"
+SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "batch_clone.py"
 IMPORTERS = {".fbx": "fbx", ".glb": "gltf", ".gltf": "gltf"}
 CONTAINERS = (".blend",) + tuple(IMPORTERS)
+TARGET_SUFFIXES = (".obj",) + CONTAINERS
+BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 # Contact sheet: the neutral plus the first of these that were cloned, then any others, 8 tiles.
 PREVIEW_FAVOURITES = ("jawOpen", "eyeBlink_L", "mouthSmile_L", "browInnerUp", "browInnerUp_L",
                       "mouthPucker", "cheekPuff", "cheekPuff_L", "mouthFunnel", "browDown_R",
@@ -53,11 +58,19 @@ def parse_args(argv):
                         help="expressions: a .blend[:Object], .fbx or .glb mesh with shape keys, "
                              "or a folder with neutral.obj + one OBJ per expression "
                              "(default: the bundled ICT-FaceKit ARKit library)")
-    parser.add_argument("--target", metavar="T",
+    parser.add_argument("--target", metavar="T", action="append",
                         help="head to receive them: .blend[:Object], .obj, .fbx or .glb "
-                             "(default: the bundled demo head)")
+                             "(default: the bundled demo head). Give it several times, or a "
+                             "folder of such files, for a batch: one output per target in "
+                             "--out-dir and one summary report")
     parser.add_argument("--out", metavar="OUT.blend",
                         help="result .blend (default: out/<target name>_exclone.blend)")
+    parser.add_argument("--out-dir", metavar="DIR",
+                        help="batch only: where each target's .blend, .json and .png go "
+                             "(default: out)")
+    parser.add_argument("--jobs", metavar="N", type=int, default=1,
+                        help="batch only: targets processed at once, each in its own process "
+                             "(default: 1)")
     parser.add_argument("--export-dir", metavar="DIR",
                         help="also write neutral.obj and one OBJ per new shape key, in the "
                              "target's own coordinates and vertex order")
@@ -69,7 +82,23 @@ def parse_args(argv):
                         help="clone only these expressions")
     parser.add_argument("--preview", metavar="P.png",
                         help="contact sheet of rendered expressions (default: OUT with .png)")
-    return parser.parse_args(argv)
+    args = parser.parse_args(argv)
+    targets = args.target or []
+    args.batch = len(targets) > 1 or any(_split_spec(t)[0].is_dir() for t in targets)
+    if not args.batch:
+        args.target = targets[0] if targets else None
+        for option, given in (("--out-dir", args.out_dir is not None), ("--jobs", args.jobs != 1)):
+            if given:
+                raise ExCloneError(f"{option} is for several targets (give --target more than "
+                                   "once, or a folder)")
+    else:
+        for option, value in (("--out", args.out), ("--preview", args.preview)):
+            if value:
+                raise ExCloneError(f"{option} names one file; with several targets each one's "
+                                   "outputs go to --out-dir")
+        if args.jobs < 1:
+            raise ExCloneError(f"--jobs must be at least 1, got {args.jobs}")
+    return args
 
 
 @dataclass
@@ -496,6 +525,122 @@ def run(args):
     return report
 
 
+def batch_targets(specs):
+    """The --target values with each folder replaced by its mesh files (sorted by name)."""
+    targets = []
+    for spec in specs:
+        path, _ = _split_spec(spec)
+        if not path.is_dir():
+            targets.append(spec)
+            continue
+        found = sorted(p for p in path.iterdir()
+                       if p.is_file() and p.suffix.lower() in TARGET_SUFFIXES)
+        if not found:
+            raise ExCloneError(f"target folder {path} holds no .blend, .obj, .fbx, .glb or "
+                               ".gltf file")
+        targets += [str(p) for p in found]
+    return targets
+
+
+def output_stems(targets):
+    """One output name per target: the file's stem (and object), made unique with -2, -3..."""
+    stems, seen = [], {}
+    for spec in targets:
+        path, name = _split_spec(spec)
+        stem = _file_stem(path.stem + (f"_{name}" if name else ""))
+        seen[stem] = seen.get(stem, 0) + 1
+        stems.append(stem if seen[stem] == 1 else f"{stem}-{seen[stem]}")
+    return stems
+
+
+def _child_command():
+    """How to run the single-target CLI in a new process, here: the bpy module's Python or
+    the Blender executable."""
+    if not SCRIPT.is_file():
+        raise ExCloneError(f"batches run {SCRIPT} once per target, and it is missing")
+    if bpy.app.binary_path:
+        return [bpy.app.binary_path, "-b", "--python", str(SCRIPT), "--"]
+    return [sys.executable, str(SCRIPT)]
+
+
+def _run_target(command, spec, out, shared_args, env, export_dir):
+    """The single-target CLI on one target; returns its summary entry (never raises for a
+    failed target)."""
+    arguments = ["--target", spec, "--out", str(out)] + shared_args
+    if export_dir is not None:
+        arguments += ["--export-dir", str(export_dir)]
+    clock = time.perf_counter()
+    done = subprocess.run(command + arguments, capture_output=True, text=True, env=env)
+    entry = {"target": spec, "seconds": round(time.perf_counter() - clock, 2)}
+    if done.returncode != 0:
+        lines = [line for line in done.stderr.splitlines() if line.strip()]
+        error = lines[-1].removeprefix("batch_clone: error: ") if lines else \
+            f"exited with code {done.returncode}"
+        entry.update(status="failed", error=error)
+        return entry
+    report = json.loads(out.with_suffix(".json").read_text(encoding="utf-8"))
+    entry.update(status="ok", blend=str(out), report=str(out.with_suffix(".json")),
+                 preview=str(out.with_suffix(".png")),
+                 shape_keys_added=report["counts"]["shape_keys_added"],
+                 fit_error_rel=report["quality"].get("registration_mean_distance_rel"))
+    return entry
+
+
+def run_batch(args):
+    """Every target through the single-target CLI, --jobs at a time, each in its own process (one
+    bad or crashing target cannot stop the others). Writes the summary report and returns it."""
+    started = time.perf_counter()
+    targets = batch_targets(args.target)
+    out_dir = Path(args.out_dir or "out")
+    summary_path = Path(args.report) if args.report else out_dir / "batch_report.json"
+    if summary_path.suffix.lower() != ".json":
+        raise ExCloneError(f"--report must name a .json file, got {summary_path}")
+    _refuse_overwriting_inputs([summary_path], [_split_spec(t)[0] for t in targets
+                                                if _split_spec(t)[0].exists()])
+    command = _child_command()
+    shared = []
+    for option, value in (("--source", args.source), ("--landmarks", args.landmarks),
+                          ("--shapes", args.shapes)):
+        if value is not None:
+            shared += [option, value]
+    jobs = min(args.jobs, len(targets))
+    env = dict(os.environ)
+    if jobs > 1:  # the processes share the cores: one BLAS thread pool each, not one per core
+        for name in BLAS_THREADS:
+            env.setdefault(name, str(max(1, (os.cpu_count() or 1) // jobs)))
+    stems = output_stems(targets)
+    print(f"batch: {len(targets)} target(s), {jobs} at a time", flush=True)
+
+    def one(index):
+        export = Path(args.export_dir) / stems[index] if args.export_dir else None
+        entry = _run_target(command, targets[index], out_dir / f"{stems[index]}_exclone.blend",
+                            shared, env, export)
+        outcome = (f"{entry['shape_keys_added']} shape keys added" if entry["status"] == "ok"
+                   else f"FAILED: {entry['error']}")
+        print(f"[{index + 1}/{len(targets)}] {targets[index]}: {outcome} "
+              f"({entry['seconds']:.1f} s)", flush=True)
+        return entry
+
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        entries = list(pool.map(one, range(len(targets))))
+    failed = [entry for entry in entries if entry["status"] != "ok"]
+    summary = {"targets": entries, "succeeded": len(entries) - len(failed), "failed": len(failed),
+               "jobs": jobs, "seconds": round(time.perf_counter() - started, 2),
+               "arguments": {"source": args.source, "landmarks": args.landmarks,
+                             "shapes": args.shapes, "out_dir": str(out_dir),
+                             "export_dir": args.export_dir}}
+    summary_path.parent.mkdir(parents=True, exist_ok=True)
+    summary_path.write_text(json.dumps(summary, indent=2, default=_json_value) + "\n",
+                            encoding="utf-8")
+    print(f"summary: {summary_path} ({summary['succeeded']} ok, {len(failed)} failed, "
+          f"{summary['seconds']:.1f} s)")
+    if failed:
+        raise ExCloneError(f"{len(failed)} of {len(entries)} targets failed (first: "
+                           f"{failed[0]['target']}: {failed[0]['error']}); the others were "
+                           f"written; summary: {summary_path}")
+    return summary
+
+
 @contextlib.contextmanager
 def _stderr_to_stdout():
     """Send everything written to stderr meanwhile (Blender's own messages, e.g. EGL warnings
@@ -517,7 +662,11 @@ def main(argv):
     """Run the CLI on argv (the arguments after the script); returns the exit code."""
     try:
         with _stderr_to_stdout():
-            run(parse_args(argv))
+            args = parse_args(argv)
+            if args.batch:
+                run_batch(args)
+            else:
+                run(args)
         return 0
     except ExCloneError as exc:
         message = str(exc)

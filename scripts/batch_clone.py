@@ -2,10 +2,16 @@
 
     python scripts/batch_clone.py [--source S] [--target T] [--out OUT.blend] [--export-dir DIR]
         [--report R.json] [--landmarks L.json] [--shapes NAME,NAME...] [--preview P.png]
+    python scripts/batch_clone.py --target T1 --target T2|FOLDER ... [--out-dir DIR] [--jobs N]
     blender -b --python scripts/batch_clone.py -- ARGS
 
 With no arguments: the bundled ICT-FaceKit ARKit library onto the bundled demo head, written to
 out/demo_head_exclone.blend, .json and .png.
+
+Several targets (--target given more than once, or a folder of meshes) make a batch: each target
+runs in its own process, --jobs N at a time, writing <out-dir>/<target>_exclone.blend, .json and
+.png, plus one summary report (--report, default <out-dir>/batch_report.json). A bad target is
+reported and skipped; the exit code is non-zero if any target failed.
 """
 import sys
 from pathlib import Path
