@@ -17,6 +17,7 @@ import pytest
 import exclone_addon
 from exclone_addon.blender import landmarks as stored_landmarks
 from exclone_addon.blender import mesh_io, panel, preferences, workflow
+from exclone_addon.core.errors import Cancelled
 from exclone_addon.core.library import ARKIT_BLENDSHAPES, load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj
 
@@ -476,6 +477,42 @@ def test_a_source_object_without_shape_keys_is_refused(head):
     with pytest.raises(RuntimeError, match="Select a source mesh with shape keys"):
         bpy.ops.exclone.register_faces()
     assert not any("exclone_preview" in o for o in bpy.data.objects)
+
+
+# -- the worker thread behind the UI's modal run (progress, Esc) --------------------------------
+
+def job_inputs(obj, names):
+    source = workflow.library_source()
+    rows = [source.names.index(name) for name in names]
+    source = workflow.Source(source.description, source.mesh, names, source.deltas[rows])
+    return source, workflow.basis_mesh(obj, "target"), None, workflow.clone_settings(
+        bpy.context, "fast", "reduced")
+
+
+def test_a_cancelled_job_stops_and_caches_nothing(head):
+    inputs = job_inputs(add_object("head", head), ["jawOpen"])
+    workflow.clear_cache()
+    job = workflow.EngineJob(*inputs)
+    job.cancel()
+    job.start()
+    assert job.wait(timeout=60)
+    assert isinstance(job.error, Cancelled) and job.run is None
+    assert not workflow._cache
+
+
+def test_a_job_runs_the_engine_in_a_thread_with_progress(head):
+    obj = add_object("head", head)
+    inputs = job_inputs(obj, ["jawOpen", "eyeBlink_L"])
+    workflow.clear_cache()
+    job = workflow.EngineJob(*inputs).start()
+    seen = set()
+    while not job.wait(timeout=0.05):
+        seen.add(job.message)
+    assert job.error is None and not job.run.cached
+    assert (job.fraction, job.message) == (1.0, "done")
+    assert len(seen) >= 2, seen   # polled while it ran: the phases went by (registration > 1 s)
+    assert 0.45 < lip_parting(head, job.run.result.deltas[0]) < 0.9
+    assert workflow.run_engine(*inputs).cached   # the finished job's result is kept
 
 
 # -- undo -----------------------------------------------------------------------------------------

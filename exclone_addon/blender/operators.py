@@ -5,6 +5,7 @@ library, the scene's source object or the selected mesh with shape keys. Every o
 its input before it changes anything, reports one line, and is one undo step.
 """
 import time
+from dataclasses import dataclass
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
@@ -63,9 +64,21 @@ def _poll_source(cls, context):
     return True
 
 
+@dataclass
+class Plan:
+    """An engine operator's checked inputs, and what to do with the engine's result."""
+    inputs: tuple                 # run_engine's (source, target mesh, landmarks, settings)
+    target: object
+    finish: object                # callable(workflow.Run) -> the operator's return set
+
+
 class _Engine:
-    """execute() runs self.run(context, progress) with progress in the status bar; an
-    ExCloneError becomes an error report and a cancelled operator that changed nothing."""
+    """The engine operators: self.plan(context) checks the input and reads the meshes (and may
+    return a set to stop early), the engine runs, plan.finish writes the result.
+
+    From the UI (invoke with a window) the engine runs in a worker thread while a modal handler
+    shows the progress and Esc cancels; elsewhere (scripts, background Blender) execute() runs it
+    with progress_update only. An ExCloneError or a cancel changes nothing."""
     bl_options = {'REGISTER', 'UNDO'}
 
     preset: EnumProperty(
@@ -74,11 +87,19 @@ class _Engine:
         + PRESET_ITEMS, default="DEFAULT")
     formulation: EnumProperty(name="Formulation", items=FORMULATION_ITEMS, default="reduced")
 
+    def settings(self, context):
+        return workflow.clone_settings(context, self.preset, self.formulation)
+
     def execute(self, context):
         window_manager = context.window_manager
         window_manager.progress_begin(0.0, 1.0)
         try:
-            return self.run(context, lambda fraction, _: window_manager.progress_update(fraction))
+            plan = self.plan(context)
+            if isinstance(plan, set):
+                return plan
+            run = workflow.run_engine(
+                *plan.inputs, progress=lambda fraction, _: window_manager.progress_update(fraction))
+            return plan.finish(run)
         except ExCloneError as exc:
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}
@@ -88,8 +109,65 @@ class _Engine:
         finally:
             window_manager.progress_end()
 
-    def settings(self, context):
-        return workflow.clone_settings(context, self.preset, self.formulation)
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        try:
+            plan = self.plan(context)
+        except ExCloneError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
+        if isinstance(plan, set):
+            return plan
+        self._plan, self._digest = plan, workflow.mesh_digest(plan.target)
+        self._job = workflow.EngineJob(*plan.inputs).start()
+        window_manager = context.window_manager
+        self._timer = window_manager.event_timer_add(0.1, window=context.window)
+        window_manager.progress_begin(0.0, 1.0)
+        window_manager.modal_handler_add(self)
+        return {'RUNNING_MODAL'}
+
+    def modal(self, context, event):
+        job = self._job
+        if event.type == 'ESC':
+            job.cancel()
+            context.workspace.status_text_set("ExClone: cancelling at the next step...")
+            return {'RUNNING_MODAL'}
+        if event.type != 'TIMER':
+            return {'PASS_THROUGH'}
+        if not job.done:
+            context.window_manager.progress_update(job.fraction)
+            if not job.cancelled:
+                context.workspace.status_text_set(
+                    f"ExClone: {job.message} {100 * job.fraction:.0f}% (Esc cancels)")
+            return {'PASS_THROUGH'}
+        context.window_manager.event_timer_remove(self._timer)
+        context.window_manager.progress_end()
+        context.workspace.status_text_set(None)
+        return self._finish_job(job)
+
+    def _finish_job(self, job):
+        if isinstance(job.error, Cancelled):
+            self.report({'WARNING'}, "Cancelled; nothing was changed")
+            return {'CANCELLED'}
+        if job.error is not None:
+            message = str(job.error) if isinstance(job.error, ExCloneError) else \
+                f"internal error ({type(job.error).__name__}: {job.error})"
+            self.report({'ERROR'}, message)
+            return {'CANCELLED'}
+        try:
+            unchanged = workflow.mesh_digest(self._plan.target) == self._digest
+        except ReferenceError:            # the target was deleted meanwhile
+            unchanged = False
+        if not unchanged:
+            self.report({'ERROR'}, "The target was edited or removed while the engine ran; "
+                                   "nothing was written: run again")
+            return {'CANCELLED'}
+        try:
+            return self._plan.finish(job.run)
+        except ExCloneError as exc:
+            self.report({'ERROR'}, str(exc))
+            return {'CANCELLED'}
 
 
 class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
@@ -129,7 +207,7 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
             raise ExCloneError("No expression of the source is ticked in the list")
         return wanted
 
-    def run(self, context, progress):
+    def plan(self, context):
         started = time.perf_counter()
         target = workflow.checked_target(workflow.target_object(context))
         source = workflow.resolve_source(context, target, self.use_library)
@@ -144,19 +222,21 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
             return {'CANCELLED'}
         target_mesh = workflow.basis_mesh(target, "target")
         landmarks = workflow.landmark_pairs(source, target, target_mesh)
-        run = workflow.run_engine(source, target_mesh, landmarks, self.settings(context), progress)
-        result = run.result
-        rows = [result.names.index(name) for name in wanted]
-        deltas = result.deltas[rows]
-        if self.parts == 'STILL':
-            deltas[:, workflow.still_parts_mask(target_mesh, result.target_landmarks)] = 0.0
-        added, replaced, also_skipped = mesh_io.write_shape_keys(
-            target, [self.prefix + name for name in wanted], deltas,
-            replace_existing=self.replace_existing)
-        self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
-                                      time.perf_counter() - started, result.quality)
-                    + (" (registration reused)" if run.cached else ""))
-        return {'FINISHED'}
+
+        def finish(run):
+            result = run.result
+            deltas = result.deltas[[result.names.index(name) for name in wanted]]
+            if self.parts == 'STILL':
+                deltas[:, workflow.still_parts_mask(target_mesh, result.target_landmarks)] = 0.0
+            added, replaced, also_skipped = mesh_io.write_shape_keys(
+                target, [self.prefix + name for name in wanted], deltas,
+                replace_existing=self.replace_existing)
+            self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
+                                          time.perf_counter() - started, result.quality)
+                        + (" (registration reused)" if run.cached else ""))
+            return {'FINISHED'}
+
+        return Plan((source, target_mesh, landmarks, self.settings(context)), target, finish)
 
 
 class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
@@ -174,21 +254,25 @@ class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
     def poll(cls, context):
         return _poll_target(cls, context)
 
-    def run(self, context, progress):
+    def plan(self, context):
         started = time.perf_counter()
         target = workflow.checked_target(workflow.target_object(context))
         source = workflow.library_source()
         target_mesh = workflow.basis_mesh(target, "target")
         landmarks = workflow.landmark_pairs(source, target, target_mesh)
-        run = workflow.run_engine(source, target_mesh, landmarks, self.settings(context), progress)
-        names, deltas, missing = arkit_blendshapes(run.result.names, run.result.deltas)
-        added, replaced, skipped = mesh_io.write_shape_keys(
-            target, names, deltas, replace_existing=self.replace_existing)
-        text = summary(added, replaced, skipped, time.perf_counter() - started, run.result.quality)
-        if missing:
-            text += f"; not in the library: {', '.join(missing)}"
-        self.report({'INFO'}, "ARKit: " + text)
-        return {'FINISHED'}
+
+        def finish(run):
+            names, deltas, missing = arkit_blendshapes(run.result.names, run.result.deltas)
+            added, replaced, skipped = mesh_io.write_shape_keys(
+                target, names, deltas, replace_existing=self.replace_existing)
+            text = summary(added, replaced, skipped, time.perf_counter() - started,
+                           run.result.quality)
+            if missing:
+                text += f"; not in the library: {', '.join(missing)}"
+            self.report({'INFO'}, "ARKit: " + text)
+            return {'FINISHED'}
+
+        return Plan((source, target_mesh, landmarks, self.settings(context)), target, finish)
 
 
 def _remove_previews():
@@ -215,29 +299,32 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
     def poll(cls, context):
         return _poll_target(cls, context) and _poll_source(cls, context)
 
-    def run(self, context, progress):
+    def plan(self, context):
         started = time.perf_counter()
         target = workflow.checked_target(workflow.target_object(context))
         source = workflow.resolve_source(context, target, self.use_library)
         target_mesh = workflow.basis_mesh(target, "target")
         landmarks = workflow.landmark_pairs(source, target, target_mesh)
-        run = workflow.run_engine(source, target_mesh, landmarks, self.settings(context), progress)
-        _remove_previews()
-        if self.preview:
-            mesh = type(source.mesh)(run.result.registered_source, source.mesh.loop_totals,
-                                     source.mesh.loop_vertices)
-            preview = mesh_io.object_from_mesh(PREVIEW_NAME, mesh)
-            preview[PREVIEW_TAG] = True
-            preview.matrix_world = target.matrix_world
-            preview.display_type = 'WIRE'
-            preview.hide_render = True
-        count = len(run.result.target_landmarks)
-        self.report({'INFO'}, f"Registered {source.description} onto '{target.name}': "
-                              f"{workflow.fit_text(run.result)} of the target's size, {count} "
-                              f"{run.landmark_kind} landmarks, "
-                              + (f"cached result ({time.perf_counter() - started:.1f} s)"
-                                 if run.cached else f"{time.perf_counter() - started:.1f} s"))
-        return {'FINISHED'}
+
+        def finish(run):
+            _remove_previews()
+            if self.preview:
+                mesh = type(source.mesh)(run.result.registered_source, source.mesh.loop_totals,
+                                         source.mesh.loop_vertices)
+                preview = mesh_io.object_from_mesh(PREVIEW_NAME, mesh)
+                preview[PREVIEW_TAG] = True
+                preview.matrix_world = target.matrix_world
+                preview.display_type = 'WIRE'
+                preview.hide_render = True
+            seconds = time.perf_counter() - started
+            self.report({'INFO'}, f"Registered {source.description} onto '{target.name}': "
+                                  f"{workflow.fit_text(run.result)} of the target's size, "
+                                  f"{len(run.result.target_landmarks)} {run.landmark_kind} "
+                                  "landmarks, " + (f"cached result ({seconds:.1f} s)"
+                                                   if run.cached else f"{seconds:.1f} s"))
+            return {'FINISHED'}
+
+        return Plan((source, target_mesh, landmarks, self.settings(context)), target, finish)
 
 
 class EXCLONE_OT_remove_preview(bpy.types.Operator):

@@ -5,6 +5,7 @@ Meshes are read in their local coordinates from the base mesh (modifiers are not
 vertex ids match the shape keys); a target with shape keys is read at its reference (basis) key.
 """
 import hashlib
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from functools import lru_cache
@@ -12,7 +13,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..core.cloning import CloneSettings, clone_expressions
-from ..core.errors import ExCloneError
+from ..core.errors import Cancelled, ExCloneError
 from ..core.library import BUNDLED_LIBRARY, load_library
 from ..core.mesh import PolyMesh, vertex_parts
 from . import landmarks as stored_landmarks
@@ -194,3 +195,56 @@ def still_parts_mask(target_mesh, target_landmarks):
 def fit_text(result):
     fit = result.quality.get("registration_mean_distance_rel")
     return "" if fit is None else f"fit error {100 * fit:.2g}%"
+
+
+class EngineJob:
+    """run_engine in a worker thread, so that the UI stays responsive and Esc can stop it.
+
+    The worker touches no Blender data (the meshes are read before, the result is written after,
+    in the main thread). cancel() makes the engine's next progress call raise Cancelled.
+    """
+
+    def __init__(self, source, target_mesh, landmarks, clone_settings):
+        self.fraction, self.message = 0.0, "starting"
+        self.run = self.error = None
+        self._cancel = threading.Event()
+        self._thread = threading.Thread(
+            target=self._work, args=(source, target_mesh, landmarks, clone_settings), daemon=True)
+
+    def _progress(self, fraction, message):
+        if self._cancel.is_set():
+            raise Cancelled()
+        self.fraction, self.message = fraction, message
+
+    def _work(self, *inputs):
+        try:
+            self.run = run_engine(*inputs, progress=self._progress)
+        except (ExCloneError, Cancelled) as exc:
+            self.error = exc
+        except Exception as exc:  # reported by the operator; the thread must not die silently
+            self.error = exc
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    def cancel(self):
+        self._cancel.set()
+
+    @property
+    def cancelled(self):
+        return self._cancel.is_set()
+
+    @property
+    def done(self):
+        return not self._thread.is_alive()
+
+    def wait(self, timeout=None):
+        self._thread.join(timeout)
+        return self.done
+
+
+def mesh_digest(obj):
+    """Identifies an object's basis mesh, to notice edits made while a job runs."""
+    mesh = basis_mesh(obj, "target")
+    return _digest(mesh.vertices, mesh.loop_totals, mesh.loop_vertices)
