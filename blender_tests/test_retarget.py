@@ -1,0 +1,132 @@
+"""core.retarget: sparse blendshapes, RBF mapping, bounded weights, take refinement (issue 5, step 5).
+
+The closed loop reuses test_tracking's synthetic take (the ICT head with known weights and head
+rotation, projected with pixel noise); the avatar is the ICT library itself.
+"""
+import time
+
+import numpy as np
+import pytest
+
+from exclone_addon.core.errors import ExCloneError
+from exclone_addon.core.retarget import (SurfaceLocations, WeightSolver, locate_points,
+                                         map_blendshapes, refine_take)
+from test_tracking import CALIBRATION_FRAMES, ict_rig, synthetic_take, tracked_take
+
+
+def closed_loop(outlier_fraction=0.0):
+    rig, take, tracked = ict_rig(), synthetic_take(outlier_fraction), tracked_take(outlier_fraction)
+    mapped = map_blendshapes(rig.neutral, rig.deltas, tracked.neutral)
+    solver = WeightSolver(mapped, rig.library.names)
+    # the fit's model-space shape is already free of head motion: its displacement from the
+    # calibrated neutral is the expression
+    displacements = np.array([f.shape - tracked.neutral for f in tracked.fits])
+    times, weights = [], []
+    for d in displacements:
+        start = time.perf_counter()
+        weights.append(solver.solve(d))
+        times.append(time.perf_counter() - start)
+    return rig, take, tracked, solver, displacements, np.array(weights), 1000 * np.array(times)
+
+
+def test_surface_locations_sample_known_values():
+    values = np.array([[0.0, 0, 0], [2.0, 0, 0], [0.0, 4, 0], [0.0, 0, 8]])
+    loc = SurfaceLocations.from_triangles(np.array([[0, 1, 2], [1, 2, 3]]), [1, 0],
+                                          [[0.5, 0.25, 0.25], [0.2, 0.3, 0.5]])
+    np.testing.assert_allclose(loc.sample(values), [[1.0, 1.0, 2.0], [0.6, 2.0, 0.0]])
+    stacked = loc.sample(np.stack([values, 2 * values]))
+    np.testing.assert_allclose(stacked[1], 2 * loc.sample(values))
+    np.testing.assert_allclose(SurfaceLocations.from_vertices([3, 1]).sample(values), values[[3, 1]])
+    # points on a triangle are located on it with their own barycentrics
+    tri = np.array([[0, 1, 2]])
+    found, dist = locate_points(np.array([[0.5, 1.0, 0.0], [0.5, 1.0, 3.0]]), values, tri)
+    np.testing.assert_allclose(found.sample(values), [[0.5, 1.0, 0.0], [0.5, 1.0, 0.0]], atol=1e-12)
+    np.testing.assert_allclose(dist, [0.0, 3.0], atol=1e-12)
+
+
+def test_rbf_with_linear_term_maps_affine_faces_exactly():
+    """When the actor's neutral is an affine image of the avatar's, so is every mapped shape."""
+    rng = np.random.default_rng(3)
+    avatar = rng.normal(size=(60, 3))
+    deltas = 0.05 * rng.normal(size=(4, 60, 3))
+    a = np.array([[1.2, 0.1, 0.0], [-0.1, 0.9, 0.2], [0.0, 0.1, 1.1]])
+    actor = avatar @ a.T + [1.0, 2.0, 3.0]
+    mapped = map_blendshapes(avatar, deltas, actor)
+    np.testing.assert_allclose(mapped, deltas @ a.T, atol=1e-8)
+    with pytest.raises(ExCloneError, match="landmark counts"):
+        map_blendshapes(avatar, deltas, actor[:10])
+
+
+def test_weight_solver_known_weights_and_bounds():
+    rng = np.random.default_rng(4)
+    shapes = rng.normal(size=(8, 40, 3))
+    solver = WeightSolver(shapes, [f"s{j}" for j in range(8)], axis_weights=(1, 1, 1))
+    truth = rng.uniform(0, 1, 8)
+    np.testing.assert_allclose(solver.solve(np.tensordot(truth, shapes, axes=1)), truth, atol=1e-5)
+    # outside the box: the weights stop at 0 and 1
+    beyond = np.array([1.5, -0.5, 0.3, 0.3, 0.3, 0.3, 0.3, 0.3])
+    w = solver.solve(np.tensordot(beyond, shapes, axes=1))
+    assert w.min() >= 0.0 and w.max() <= 1.0
+    assert w[0] == pytest.approx(1.0) and w[1] == pytest.approx(0.0)
+    # a shape that moves no landmark stays at zero
+    with_still = np.concatenate((shapes, np.zeros((1, 40, 3))))
+    w = WeightSolver(with_still, [f"s{j}" for j in range(9)]).solve(np.tensordot(truth, shapes, axes=1))
+    assert w[-1] == pytest.approx(0.0, abs=1e-6)
+    with pytest.raises(ExCloneError, match="names"):
+        WeightSolver(shapes, ["a"])
+
+
+def test_closed_loop_weights_track_the_truth():
+    rig, take, tracked, solver, _, weights, solve_ms = closed_loop()
+    active = rig.active
+    names = [rig.library.names[j] for j in active]
+    truth = take.weights
+    corr = np.array([np.corrcoef(weights[:, j], truth[:, j])[0, 1] for j in active])
+    mae = np.abs(weights[:, active] - truth[:, active]).mean()
+    others = np.delete(weights, active, axis=1)
+    print("\nclosed loop (ICT -> canonical landmarks -> 640x480, 1 px noise, 200 frames):")
+    for name, c, j in zip(names, corr, active):
+        print(f"  {name:16s} corr {c:.3f}  MAE {np.abs(weights[:, j] - truth[:, j]).mean():.3f}")
+    print(f"  10 active: mean corr {corr.mean():.3f}, MAE {mae:.3f}; the other "
+          f"{others.shape[1]} shapes: mean weight {others.mean():.3f}")
+    pipeline = np.array(tracked.fit_ms) + solve_ms[CALIBRATION_FRAMES:]
+    print(f"  per frame: fit median {np.median(tracked.fit_ms):.2f} ms, weight solve median "
+          f"{np.median(solve_ms):.2f} ms (95th pct {np.percentile(solve_ms, 95):.2f}), fit + solve "
+          f"median {np.median(pipeline):.2f} ms")
+    assert corr.min() >= 0.9
+    assert mae <= 0.08
+
+
+def test_closed_loop_weights_with_outliers():
+    rig, take, _, _, _, weights, _ = closed_loop(0.2)
+    active = rig.active
+    corr = np.array([np.corrcoef(weights[:, j], take.weights[:, j])[0, 1] for j in active])
+    mae = np.abs(weights[:, active] - take.weights[:, active]).mean()
+    print(f"\n20% outliers: 10 active shapes mean corr {corr.mean():.3f} (min {corr.min():.3f}), "
+          f"MAE {mae:.3f}")
+    assert corr.min() >= 0.8
+
+
+def test_refine_take_reduces_error_and_stays_close():
+    """Blendshapes that are off (scaled, noisy): the refinement explains the take better; with a
+    very large closeness it keeps the initial shapes."""
+    rng = np.random.default_rng(6)
+    rig = ict_rig()
+    shapes = rig.deltas[rig.active]
+    true_w = rng.uniform(0, 1, (120, len(shapes)))
+    take = np.tensordot(true_w, shapes, axes=1)
+    wrong = 0.8 * shapes + 0.02 * rng.normal(size=shapes.shape)
+    names = [rig.library.names[j] for j in rig.active]
+    solver = WeightSolver(wrong, names)
+    start = solver.reconstruction_error(take, solver.solve_take(take))
+    refined = refine_take(solver, take, closeness=0.01, iterations=20)
+    print(f"\nrefine take: reconstruction RMS {start:.4f} -> {refined.errors[-1]:.4f} cm "
+          f"(after iterations 1, 5, 20: {refined.errors[0]:.4f}, {refined.errors[4]:.4f}, "
+          f"{refined.errors[-1]:.4f})")
+    assert refined.errors[-1] < 0.5 * start
+    # each half-step minimises the same objective: it never goes up
+    assert np.all(np.diff(refined.objectives) <= 1e-9 * refined.objectives[0])
+    stiff = refine_take(solver, take, closeness=1e6, iterations=2)
+    np.testing.assert_allclose(stiff.solver.blendshapes, wrong, atol=1e-3)
+    with pytest.raises(ExCloneError, match="do not match"):
+        refine_take(solver, take[:, :10])

@@ -1,0 +1,265 @@
+"""core.tracking: shape-model fit with head pose, neutral calibration, filters (issue 5, steps 3-4).
+
+Known answers come from a synthetic take: the bundled ICT head, posed with known expression
+weights and a known head rotation, sampled where the canonical face's 468 points lie on it,
+projected through a known camera with pixel noise. test_retarget.py reuses the same take.
+"""
+import functools
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from exclone_addon.core.errors import ExCloneError
+from exclone_addon.core.library import load_library
+from exclone_addon.core.mesh import read_obj
+from exclone_addon.core.retarget import locate_canonical_face
+from exclone_addon.core.tracking import (FRONTAL, Camera, OneEuroFilter, RotationFilter,
+                                         ShapeFitter, ShapeModel, calibrate_neutral,
+                                         expression_shape_model, remove_head_motion)
+
+CANONICAL_FACE = Path(__file__).resolve().parent.parent / "exclone_addon" / "data" / "canonical_face.obj"
+FRAMES = 200
+CALIBRATION_FRAMES = 30      # a neutral face, the head turning (one second at 30 fps)
+FPS = 30.0
+IMAGE_SIZE = (640, 480)
+
+
+@functools.lru_cache(maxsize=1)
+def ict_rig():
+    """The ICT library with the canonical face located on its skin, and the tracker's model."""
+    library = load_library()
+    canonical = read_obj(CANONICAL_FACE)
+    triangles = library.mesh.triangles()
+    start, stop = library.parts["face"]
+    skin = triangles[np.all((triangles >= start) & (triangles < stop), axis=1)]
+    locations, _ = locate_canonical_face(canonical, library.mesh, skin)
+    neutral = locations.sample(library.mesh.vertices)
+    deltas = locations.sample(library.deltas)
+    model = expression_shape_model(canonical.vertices, neutral, deltas)
+    motion = np.sqrt((deltas ** 2).sum(axis=2).mean(axis=1))
+    active = np.argsort(-motion)[:10]          # the 10 shapes that move the landmarks most
+    return SimpleNamespace(library=library, canonical=canonical, locations=locations,
+                           neutral=neutral, deltas=deltas, model=model, active=active)
+
+
+@functools.lru_cache(maxsize=2)
+def synthetic_take(outlier_fraction=0.0, noise_px=1.0, seed=5):
+    """200 frames: known weights (10 shapes, smooth, in 0..1) and head rotation (up to 25 deg)."""
+    rig = ict_rig()
+    rng = np.random.default_rng(seed)
+    t = np.arange(FRAMES) / FPS
+    weights = np.zeros((FRAMES, len(rig.deltas)))
+    for j in rig.active:
+        freq, phase = rng.uniform(0.2, 0.8, 2), rng.uniform(0, 2 * np.pi, 2)
+        weights[:, j] = np.clip(0.5 + 0.35 * np.sin(2 * np.pi * freq[0] * t + phase[0])
+                                + 0.25 * np.sin(2 * np.pi * freq[1] * t + phase[1]), 0.0, 1.0)
+    weights[:CALIBRATION_FRAMES] = 0.0
+    angles = np.column_stack((25 * np.sin(2 * np.pi * 0.3 * t), 18 * np.sin(2 * np.pi * 0.21 * t + 1),
+                              10 * np.sin(2 * np.pi * 0.17 * t + 2)))
+    c = t[:CALIBRATION_FRAMES]
+    angles[:CALIBRATION_FRAMES] = np.column_stack((15 * np.sin(2 * np.pi * c), 10 * np.sin(4 * np.pi * c),
+                                                   0 * c))
+    rotations = Rotation.from_euler("yxz", angles, degrees=True)      # in camera space
+    camera = Camera.from_image_size(*IMAGE_SIZE)
+    centre = rig.neutral.mean(axis=0)
+    points = np.empty((FRAMES, len(rig.neutral), 2))
+    outliers = np.zeros((FRAMES, len(rig.neutral)), dtype=bool)
+    for k in range(FRAMES):
+        face = rig.neutral + np.tensordot(weights[k], rig.deltas, axes=1) - centre
+        camera_points = (rotations[k] * FRONTAL).apply(face) + [1.0, -2.0, 55.0]
+        points[k] = camera.project(camera_points) + rng.normal(0.0, noise_px, (len(face), 2))
+        if outlier_fraction:
+            ids = rng.choice(len(face), int(round(outlier_fraction * len(face))), replace=False)
+            low, high = points[k].min(axis=0), points[k].max(axis=0)
+            margin = 0.2 * (high - low)
+            points[k, ids] = rng.uniform(low - margin, high + margin, (len(ids), 2))
+            outliers[k, ids] = True
+    return SimpleNamespace(points=points, weights=weights, rotations=rotations, camera=camera,
+                           outliers=outliers)
+
+
+@functools.lru_cache(maxsize=2)
+def tracked_take(outlier_fraction=0.0):
+    """The take through calibration (first second) and the per-frame fit, with fit times."""
+    rig, take = ict_rig(), synthetic_take(outlier_fraction)
+    fitter = ShapeFitter(rig.model, take.camera)
+    start = time.perf_counter()
+    neutral, actor_fitter, fits = calibrate_neutral(fitter, take.points[:CALIBRATION_FRAMES])
+    calibration_s = time.perf_counter() - start
+    times = []
+    for points in take.points[CALIBRATION_FRAMES:]:
+        start = time.perf_counter()
+        fits.append(actor_fitter.fit(points, previous=fits[-1]))
+        times.append(time.perf_counter() - start)
+    return SimpleNamespace(neutral=neutral, fitter=actor_fitter, fits=fits,
+                           calibration_s=calibration_s, fit_ms=1000 * np.array(times))
+
+
+def rotation_errors_deg(take, fits):
+    """Head rotation relative to frame 0, estimated vs true, per frame (degrees)."""
+    ref_est, ref_true = fits[0].rotation, take.rotations[0]
+    return np.array([np.degrees(((f.rotation * ref_est.inv()).inv()
+                                 * take.rotations[k] * ref_true.inv()).magnitude())
+                     for k, f in enumerate(fits)])
+
+
+def test_camera_defaults_and_projection():
+    cam = Camera.from_image_size(640, 480)
+    assert (cam.fx, cam.fy, cam.cx, cam.cy) == (640.0, 640.0, 320.0, 240.0)
+    given = Camera.from_image_size(640, 480, fx=500, fy=510, cx=300, cy=200)
+    assert (given.fx, given.fy, given.cx, given.cy) == (500.0, 510.0, 300.0, 200.0)
+    np.testing.assert_allclose(cam.project(np.array([[0.0, 0.0, 10.0], [1.0, -2.0, 10.0]])),
+                               [[320, 240], [384, 112]])
+    # the analytic Jacobian matches finite differences
+    p = np.array([[1.0, -2.0, 10.0]])
+    numeric = np.stack([(cam.project(p + e) - cam.project(p - e))[0] / 2e-6
+                        for e in 1e-6 * np.eye(3)], axis=1)
+    np.testing.assert_allclose(cam.jacobian(p)[0], numeric, rtol=1e-6)
+    with pytest.raises(ExCloneError, match="image size"):
+        Camera.from_image_size(0, 480)
+
+
+def test_shape_model_modes_span_the_examples():
+    from exclone_addon.core.cloning import similarity_transform
+    rig = ict_rig()
+    model = rig.model
+    k = len(model.eigenvalues)
+    flat = model.modes.reshape(k, -1)
+    np.testing.assert_allclose(flat @ flat.T, np.eye(k), atol=1e-9)
+    assert np.all(np.diff(model.eigenvalues) <= 0)
+    np.testing.assert_allclose(model.mean, rig.canonical.vertices)
+    # the expressions, in the canonical face's frame, are reproduced by the kept modes
+    r, s, _ = similarity_transform(rig.neutral, rig.canonical.vertices)
+    examples = (s * rig.deltas @ r.T).reshape(len(rig.deltas), -1)
+    kept = ((examples @ flat.T) ** 2).sum() / (examples ** 2).sum()
+    # and their prior variance is that of weights uniform in 0..1 (second moment 1/3)
+    np.testing.assert_allclose(model.eigenvalues.sum(), (examples ** 2).sum() / 3 * kept, rtol=1e-9)
+    print(f"\nshape model: {k} modes from {len(rig.deltas)} ICT expressions, {100 * kept:.3f}% kept")
+    assert kept >= 0.9999
+
+
+def test_fit_recovers_a_known_pose_from_exact_points():
+    rig = ict_rig()
+    cam = Camera.from_image_size(*IMAGE_SIZE)
+    model = rig.model
+    truth_b = 0.5 * np.sqrt(model.eigenvalues)
+    truth_rotation = Rotation.from_euler("yxz", [20, -10, 5], degrees=True) * FRONTAL
+    truth_t = np.array([2.0, 1.0, 50.0])
+    points = cam.project(truth_rotation.apply(model.shape(truth_b)) + truth_t)
+    fit = ShapeFitter(model, cam, beta=1e-6).fit(points)
+    assert np.degrees((fit.rotation.inv() * truth_rotation).magnitude()) < 0.05
+    np.testing.assert_allclose(fit.translation, truth_t, atol=0.05)
+    np.testing.assert_allclose(fit.params, truth_b, atol=0.02 * np.sqrt(model.eigenvalues[0]))
+    assert fit.residuals.max() < 0.01
+
+
+def test_closed_loop_head_rotation_within_2_degrees():
+    take, tracked = synthetic_take(), tracked_take()
+    errors = rotation_errors_deg(take, tracked.fits)
+    # the same from the METHOD's Kabsch on camera-space shapes against the first frame
+    rigid = tracked.fitter.model.rigid_weights()
+    first = tracked.fits[0].camera_points()
+    kabsch = np.array([np.degrees((remove_head_motion(f.camera_points(), first, rigid)[1].inv()
+                                   * take.rotations[k] * take.rotations[0].inv()).magnitude())
+                       for k, f in enumerate(tracked.fits)])
+    print(f"\nhead rotation error (deg, 1 px noise): fit max {errors.max():.2f} mean {errors.mean():.2f}; "
+          f"Kabsch max {kabsch.max():.2f} mean {kabsch.mean():.2f}; true range "
+          f"{np.degrees(take.rotations.magnitude()).max():.1f} deg")
+    print(f"fit per frame: median {np.median(tracked.fit_ms):.2f} ms, 95th pct "
+          f"{np.percentile(tracked.fit_ms, 95):.2f} ms, iterations median "
+          f"{np.median([f.iterations for f in tracked.fits]):.0f}; calibration "
+          f"{tracked.calibration_s:.2f} s for {CALIBRATION_FRAMES} frames")
+    assert errors.max() <= 2.0
+    assert kabsch.max() <= 3.0
+
+
+def test_outliers_do_not_drag_the_head_pose():
+    take, tracked = synthetic_take(0.2), tracked_take(0.2)
+    errors = rotation_errors_deg(take, tracked.fits)
+    weights = np.array([f.weights for f in tracked.fits])
+    print(f"\n20% outliers: head rotation error max {errors.max():.2f} mean {errors.mean():.2f} deg; "
+          f"robust weight of outliers {weights[take.outliers].mean():.3f}, inliers "
+          f"{weights[~take.outliers].mean():.3f}; fit median {np.median(tracked.fit_ms):.2f} ms")
+    assert errors.max() <= 3.0
+    assert weights[take.outliers].mean() < 0.1
+    assert weights[~take.outliers].mean() > 0.8
+
+
+def test_calibration_learns_the_actor_neutral():
+    """The calibrated neutral matches the true (ICT) landmarks up to a similarity; the canonical
+    mean it started from does not."""
+    from exclone_addon.core.cloning import similarity_transform
+    rig, tracked = ict_rig(), tracked_take()
+
+    def misfit(shape):
+        r, s, t = similarity_transform(shape, rig.neutral)
+        return np.sqrt(((s * shape @ r.T + t - rig.neutral) ** 2).sum(axis=1).mean())
+
+    before, after = misfit(rig.model.mean), misfit(tracked.neutral)
+    print(f"\nneutral vs true landmarks (RMS cm after similarity): canonical {before:.3f}, "
+          f"calibrated {after:.3f}")
+    assert after < 0.1 and after < 0.35 * before
+
+
+def test_remove_head_motion_known_answer():
+    rng = np.random.default_rng(1)
+    neutral = rng.normal(size=(50, 3))
+    displacement = np.zeros_like(neutral)
+    displacement[:5] = rng.normal(scale=0.05, size=(5, 3))
+    turn = Rotation.from_euler("xyz", [10, -25, 5], degrees=True)
+    frame = turn.apply(neutral + displacement) + [3.0, -1.0, 2.0]
+    weights = np.ones(50)
+    weights[:5] = 0.0                      # the moving points do not vote on the head pose
+    aligned, rotation = remove_head_motion(frame, neutral, weights)
+    assert np.degrees((rotation.inv() * turn).magnitude()) < 1e-6
+    np.testing.assert_allclose(aligned - neutral, displacement, atol=1e-9)
+    # a mirrored frame cannot be matched by a reflection: the result stays a proper rotation
+    _, rotation = remove_head_motion(frame * [-1, 1, 1], neutral)
+    assert np.linalg.det(rotation.as_matrix()) > 0
+    with pytest.raises(ExCloneError):
+        remove_head_motion(frame[:10], neutral)
+
+
+def test_one_euro_filter_removes_jitter_and_keeps_fast_motion():
+    rng = np.random.default_rng(2)
+    t = np.arange(300) / FPS
+    steady = 5.0 + rng.normal(0.0, 1.0, len(t))
+    flt = OneEuroFilter(min_cutoff=1.0, beta=0.05)
+    out = np.array([flt(x, s) for x, s in zip(steady, t)])
+    assert out[30:].std() < 0.4 * steady[30:].std()
+    # without speed adaptation it is exactly the exponential smoother of cut-off min_cutoff
+    from scipy.signal import lfilter
+    alpha = 1.0 / (1.0 + FPS / (2 * np.pi * 1.0))
+    fixed = OneEuroFilter(min_cutoff=1.0, beta=0.0)
+    expected, _ = lfilter([alpha], [1.0, alpha - 1.0], steady[1:], zi=[(1 - alpha) * steady[0]])
+    np.testing.assert_allclose([fixed(x, s) for x, s in zip(steady, t)][1:], expected, rtol=1e-12)
+    # a fast ramp (300 units/s): the adaptive cut-off follows it with far less lag than the
+    # same filter without speed adaptation
+    ramp = 300.0 * t
+    lag_adaptive = ramp[-1] - [OneEuroFilter(1.0, 0.05)(x, s) for x, s in zip(ramp, t)][-1]
+    fixed = OneEuroFilter(1.0, 0.0)
+    lag_fixed = ramp[-1] - [fixed(x, s) for x, s in zip(ramp, t)][-1]
+    assert lag_adaptive < 0.1 * lag_fixed
+    # rotations: jitter of 1 degree about a fixed pose is reduced
+    base = Rotation.from_euler("y", 20, degrees=True)
+    noisy = [Rotation.from_rotvec(np.radians(rng.normal(0, 1.0, 3))) * base for _ in t]
+    rf = RotationFilter(min_cutoff=1.0, beta=0.5)
+    smoothed = [rf(r, s) for r, s in zip(noisy, t)]
+    err_in = np.mean([np.degrees((r * base.inv()).magnitude()) for r in noisy[30:]])
+    err_out = np.mean([np.degrees((r * base.inv()).magnitude()) for r in smoothed[30:]])
+    assert err_out < 0.5 * err_in
+
+
+def test_fit_rejects_bad_input():
+    rig = ict_rig()
+    fitter = ShapeFitter(rig.model, Camera.from_image_size(*IMAGE_SIZE))
+    with pytest.raises(ExCloneError, match="468"):
+        fitter.fit(np.zeros((68, 2)))
+    with pytest.raises(ExCloneError, match="fewer than 6"):
+        fitter.fit(np.full((468, 2), np.nan))
+    with pytest.raises(ExCloneError, match="at least one frame"):
+        calibrate_neutral(fitter, np.zeros((0, 468, 2)))
