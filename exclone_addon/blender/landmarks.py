@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from ..core.errors import ExCloneError
 from ..core.landmarks import automatic_landmarks
 from ..core.mesh import valid_triangles
-from ..core.orientation import face_frame
+from ..core.orientation import face_frame, vertex_symmetry_plane
 
 IDS = "exclone_landmarks"
 AUTOMATIC_IDS = "exclone_landmarks_auto"
@@ -139,32 +139,6 @@ def snap(obj):
             [name for name in before if name not in landmarks])
 
 
-def symmetry_plane(mesh, max_steps=100):
-    """(unit normal, offset) of the mesh's left-right symmetry plane n . x = offset: the face
-    frame's plane (good to about a degree), refined on the vertices themselves so that a mirror
-    symmetric mesh maps each vertex onto its twin: reflect, pair with the nearest vertex, refit
-    the plane to the midpoints of the better half of the pairs."""
-    vertices = mesh.vertices
-    frame = face_frame(vertices, surface_triangles(mesh))
-    normal, offset = frame.rotation[:, 0], float(frame.rotation[:, 0] @ frame.origin)
-    tree = cKDTree(vertices)
-    previous = None
-    for _ in range(max_steps):
-        reflected = vertices - 2 * (vertices @ normal - offset)[:, None] * normal
-        distance, twin = tree.query(reflected)
-        if previous is not None and np.array_equal(twin, previous):
-            break                                      # the pairs no longer change
-        previous = twin
-        keep = distance <= np.median(distance)
-        # the midpoints of true twins lie on the plane: fit it to them
-        middle = (vertices[keep] + vertices[twin[keep]]) / 2
-        centre = middle.mean(axis=0)
-        fitted = np.linalg.svd(middle - centre, full_matrices=False)[2][-1]
-        normal = fitted if fitted @ normal >= 0 else -fitted
-        offset = float(normal @ centre)
-    return normal, offset
-
-
 def mirrored(obj, mesh, from_side="left"):
     """The object's landmarks with each one of the other side at the mirror image of its
     `from_side` twin, through the face's symmetry plane (core.orientation), snapped to the nearest
@@ -175,7 +149,7 @@ def mirrored(obj, mesh, from_side="left"):
              if name.endswith("_" + from_side) and name[:-len(from_side)] + to_side in landmarks]
     if not pairs:
         return landmarks, []
-    normal, offset = symmetry_plane(mesh)
+    normal, offset = vertex_symmetry_plane(mesh.vertices, surface_triangles(mesh))
     points = mesh.vertices[[landmarks[a] for a, _ in pairs]]
     reflected = points - 2 * (points @ normal - offset)[:, None] * normal
     _, nearest = cKDTree(mesh.vertices).query(reflected)

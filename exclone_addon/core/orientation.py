@@ -178,3 +178,26 @@ def face_frame(vertices, triangles):
     origin = samples.mean(axis=0)
     origin = origin - (origin @ normal - offset) * normal  # on the symmetry plane
     return FaceFrame(rotation, origin, diagonal, float(sym_error))
+
+
+def vertex_symmetry_plane(vertices, triangles, max_steps=100):
+    """(unit normal, offset) of the left-right symmetry plane n . x = offset, exact enough that a
+    mirror-symmetric mesh maps each vertex onto its twin (for mirrored landmark editing): the face
+    frame's plane (good to about a degree), then refit to the midpoints of the better half of the
+    reflected-vertex / nearest-vertex pairs until the pairs stop changing."""
+    frame = face_frame(vertices, triangles)
+    normal, offset = frame.rotation[:, 0], float(frame.rotation[:, 0] @ frame.origin)
+    tree = cKDTree(vertices)
+    previous = None
+    for _ in range(max_steps):
+        distance, twin = tree.query(_mirror(vertices, normal, offset))
+        if previous is not None and np.array_equal(twin, previous):
+            break
+        previous = twin
+        keep = distance <= np.median(distance)
+        middle = (vertices[keep] + vertices[twin[keep]]) / 2     # true twins' midpoints lie on it
+        centre = middle.mean(axis=0)
+        fitted = np.linalg.svd(middle - centre, full_matrices=False)[2][-1]
+        normal = fitted if fitted @ normal >= 0 else -fitted
+        offset = float(normal @ centre)
+    return normal, offset
