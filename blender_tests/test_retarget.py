@@ -14,8 +14,9 @@ from exclone_addon.core.retarget import (SurfaceLocations, WeightSolver, locate_
 from test_tracking import CALIBRATION_FRAMES, ict_rig, synthetic_take, tracked_take
 
 
-def closed_loop(outlier_fraction=0.0):
-    rig, take, tracked = ict_rig(), synthetic_take(outlier_fraction), tracked_take(outlier_fraction)
+def closed_loop(outlier_fraction=0.0, shapes=None):
+    rig = ict_rig()
+    take, tracked = synthetic_take(outlier_fraction, shapes), tracked_take(outlier_fraction, shapes)
     mapped = map_blendshapes(rig.neutral, rig.deltas, tracked.neutral)
     solver = WeightSolver(mapped, rig.library.names)
     # the fit's model-space shape is already free of head motion: its displacement from the
@@ -105,6 +106,24 @@ def test_closed_loop_weights_with_outliers():
     print(f"\n20% outliers: 10 active shapes mean corr {corr.mean():.3f} (min {corr.min():.3f}), "
           f"MAE {mae:.3f}")
     assert corr.min() >= 0.8
+
+
+def test_closed_loop_upper_face_shapes():
+    """Blinks were the method's weakest point: a take of 10 eye, brow and nose shapes instead."""
+    shapes = ("eyeBlink_L", "eyeBlink_R", "browInnerUp_L", "browInnerUp_R", "browDown_L",
+              "browOuterUp_R", "eyeSquint_L", "eyeWide_R", "noseSneer_L", "cheekSquint_R")
+    rig, take, _, _, _, weights, _ = closed_loop(0.0, shapes)
+    corr = {}
+    print("\nupper face closed loop (1 px noise):")
+    for name, j in zip(shapes, take.active):
+        corr[name] = np.corrcoef(weights[:, j], take.weights[:, j])[0, 1]
+        print(f"  {name:16s} corr {corr[name]:.3f}  MAE {np.abs(weights[:, j] - take.weights[:, j]).mean():.3f}")
+    mae = np.abs(weights[:, take.active] - take.weights[:, take.active]).mean()
+    print(f"  mean corr {np.mean(list(corr.values())):.3f}, MAE {mae:.3f}")
+    assert corr["eyeBlink_L"] >= 0.9 and corr["eyeBlink_R"] >= 0.9
+    # measured 0.094 (eyeWide_R and cheekSquint_R are the weak ones): a looser bound than the
+    # issue's 0.08 for its 10 most active shapes, to catch regressions
+    assert mae <= 0.12
 
 
 def test_refine_take_reduces_error_and_stays_close():

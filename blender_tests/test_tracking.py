@@ -46,14 +46,16 @@ def ict_rig():
                            neutral=neutral, deltas=deltas, model=model, active=active)
 
 
-@functools.lru_cache(maxsize=2)
-def synthetic_take(outlier_fraction=0.0, noise_px=1.0, seed=5):
-    """200 frames: known weights (10 shapes, smooth, in 0..1) and head rotation (up to 25 deg)."""
+@functools.lru_cache(maxsize=3)
+def synthetic_take(outlier_fraction=0.0, shapes=None, noise_px=1.0, seed=5):
+    """200 frames: known weights (smooth, in 0..1) of `shapes` (names; default the 10 most
+    active) and a known head rotation (up to 25 deg about one axis, 30 deg overall)."""
     rig = ict_rig()
     rng = np.random.default_rng(seed)
     t = np.arange(FRAMES) / FPS
     weights = np.zeros((FRAMES, len(rig.deltas)))
-    for j in rig.active:
+    active = rig.active if shapes is None else [rig.library.names.index(n) for n in shapes]
+    for j in active:
         freq, phase = rng.uniform(0.2, 0.8, 2), rng.uniform(0, 2 * np.pi, 2)
         weights[:, j] = np.clip(0.5 + 0.35 * np.sin(2 * np.pi * freq[0] * t + phase[0])
                                 + 0.25 * np.sin(2 * np.pi * freq[1] * t + phase[1]), 0.0, 1.0)
@@ -79,13 +81,13 @@ def synthetic_take(outlier_fraction=0.0, noise_px=1.0, seed=5):
             points[k, ids] = rng.uniform(low - margin, high + margin, (len(ids), 2))
             outliers[k, ids] = True
     return SimpleNamespace(points=points, weights=weights, rotations=rotations, camera=camera,
-                           outliers=outliers)
+                           outliers=outliers, active=np.array(active))
 
 
-@functools.lru_cache(maxsize=2)
-def tracked_take(outlier_fraction=0.0):
+@functools.lru_cache(maxsize=3)
+def tracked_take(outlier_fraction=0.0, shapes=None):
     """The take through calibration (first second) and the per-frame fit, with fit times."""
-    rig, take = ict_rig(), synthetic_take(outlier_fraction)
+    rig, take = ict_rig(), synthetic_take(outlier_fraction, shapes)
     fitter = ShapeFitter(rig.model, take.camera)
     start = time.perf_counter()
     neutral, actor_fitter, fits = calibrate_neutral(fitter, take.points[:CALIBRATION_FRAMES])
@@ -155,6 +157,26 @@ def test_fit_recovers_a_known_pose_from_exact_points():
     np.testing.assert_allclose(fit.translation, truth_t, atol=0.05)
     np.testing.assert_allclose(fit.params, truth_b, atol=0.02 * np.sqrt(model.eigenvalues[0]))
     assert fit.residuals.max() < 0.01
+    # points given zero confidence are ignored, whatever they hold
+    garbage = points.copy()
+    garbage[::3] = [[10.0, 10.0]]
+    confidence = np.ones(len(points))
+    confidence[::3] = 0.0
+    fit = ShapeFitter(model, cam, beta=1e-6).fit(garbage, weights=confidence)
+    assert np.degrees((fit.rotation.inv() * truth_rotation).magnitude()) < 0.05
+
+
+def test_fit_recovers_from_a_stale_warm_start():
+    """Warm-started from a fit a second earlier (head turned far since), the fit still lands on
+    the same pose as the frame-by-frame one."""
+    take, tracked = synthetic_take(), tracked_take()
+    k = 120
+    stale = tracked.fits[k - 30]
+    turned = np.degrees((tracked.fits[k].rotation * stale.rotation.inv()).magnitude())
+    fit = tracked.fitter.fit(take.points[k], previous=stale)
+    print(f"\nstale warm start {turned:.1f} deg away: {fit.iterations} iterations")
+    assert turned > 10
+    assert np.degrees((fit.rotation.inv() * tracked.fits[k].rotation).magnitude()) < 0.2
 
 
 def test_closed_loop_head_rotation_within_2_degrees():

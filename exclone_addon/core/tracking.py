@@ -226,10 +226,10 @@ class ShapeFitter:
             diff = proj - p
             dist = np.sqrt((diff * diff).sum(axis=1))
             scale_px = max(1.4826 * np.median(dist[conf > 0]), self.min_scale_px)
-            if iteration <= huber_iterations:
+            robust = conf * tukey_weights(dist, 4.685 * scale_px)
+            if iteration <= huber_iterations or np.count_nonzero(robust) < 6:
+                # Huber never rejects a point: safe while the pose is still far off
                 robust = conf * huber_weights(dist, 1.345 * scale_px)
-            else:
-                robust = conf * tukey_weights(dist, 4.685 * scale_px)
             jp = cam.jacobian(y)
             # d y / d [omega, t, b]: (n, 3, 6 + K); omega perturbs on the left: y = exp(w) R x + t
             jy = np.empty((n, 3, 6 + k))
