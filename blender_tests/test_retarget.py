@@ -75,6 +75,15 @@ def test_weight_solver_known_weights_and_bounds():
     assert w[-1] == pytest.approx(0.0, abs=1e-6)
     with pytest.raises(ExCloneError, match="names"):
         WeightSolver(shapes, ["a"])
+    with pytest.raises(ExCloneError, match="point weights"):
+        WeightSolver(shapes, [f"s{j}" for j in range(8)], point_weights=np.ones(3))
+    # a landmark given zero weight does not count: garbage there changes nothing
+    pw = np.ones(40)
+    pw[:5] = 0.0
+    d = np.tensordot(truth, shapes, axes=1)
+    d[:5] += 10.0
+    w = WeightSolver(shapes, [f"s{j}" for j in range(8)], point_weights=pw).solve(d)
+    np.testing.assert_allclose(w, truth, atol=1e-5)
 
 
 def test_closed_loop_weights_track_the_truth():

@@ -113,6 +113,8 @@ class WeightSolver:
         self.names = list(names)
         self.blendshapes = shapes
         pw = np.ones(m) if point_weights is None else np.asarray(point_weights, dtype=np.float64)
+        if pw.shape != (m,) or np.any(pw < 0):
+            raise ExCloneError(f"point weights must be {m} values >= 0, got shape {pw.shape}")
         self.point_weights = pw
         self.axis_weights = np.asarray(axis_weights, dtype=np.float64)
         self._row_scale = np.sqrt(np.outer(pw, self.axis_weights)).ravel()

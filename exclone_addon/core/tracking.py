@@ -4,7 +4,11 @@ The method's constrained local model (METHOD part 2, steps 1-3) with a neural la
 as the local expert: the 468 FaceMesh points of a frame are explained by a rigid head pose
 (rotation, translation; a perspective camera) and a 3D shape mean + sum_j b_j mode_j, with the
 prior beta * sum_j b_j^2 / lambda_j. Robust per-point weights keep occluded or wrong points from
-dragging the fit. Also: a One Euro filter for jitter, and head-motion removal against a neutral.
+dragging the fit. Neutral calibration adapts the model's mean to the actor's face; a One Euro
+filter removes jitter; Kabsch removes head motion against the neutral.
+
+Scale is not a separate pose parameter: from one perspective view a bigger face further away
+looks the same, so the actor's size goes into the calibrated neutral and distance into depth.
 
 Camera coordinates follow OpenCV: x right, y down, z forward (into the scene); pixels (u, v).
 """
@@ -362,19 +366,18 @@ class OneEuroFilter:
 
 
 class RotationFilter:
-    """One Euro filtering of a rotation: on its rotation vector relative to the last output."""
+    """One Euro filtering of a rotation, on its rotation vector relative to the first one seen
+    (continuous, no wrap-around, for the head turns a face tracker sees)."""
 
     def __init__(self, min_cutoff=1.0, beta=0.5, d_cutoff=1.0):
         self._filter = OneEuroFilter(min_cutoff, beta, d_cutoff)
         self._reference = None
-        self._accumulated = np.zeros(3)
 
     def __call__(self, rotation, timestamp):
         if self._reference is None:
             self._reference = rotation
             self._filter(np.zeros(3), timestamp)
             return rotation
-        # unwrap: express the new rotation relative to the reference (stays far from pi)
         rel = (rotation * self._reference.inv()).as_rotvec()
         out = self._filter(rel, timestamp)
         return Rotation.from_rotvec(out) * self._reference
