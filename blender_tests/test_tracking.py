@@ -34,7 +34,7 @@ def ict_rig():
     library = load_library()
     canonical = read_obj(CANONICAL_FACE)
     triangles = library.mesh.triangles()
-    start, stop = library.parts["face"]
+    start, stop = library.parts["face"]      # ICT's skin, as its README defines it
     skin = triangles[np.all((triangles >= start) & (triangles < stop), axis=1)]
     locations, _ = locate_canonical_face(canonical, library.mesh, skin)
     neutral = locations.sample(library.mesh.vertices)
@@ -123,6 +123,34 @@ def test_camera_defaults_and_projection():
     np.testing.assert_allclose(cam.jacobian(p)[0], numeric, rtol=1e-6)
     with pytest.raises(ExCloneError, match="image size"):
         Camera.from_image_size(0, 480)
+
+
+def test_canonical_face_located_on_the_ict_face():
+    rig = ict_rig()
+    start, stop = rig.library.parts["face"]
+    assert np.all((rig.locations.corners >= start) & (rig.locations.corners < stop))
+    np.testing.assert_allclose(rig.locations.bary.sum(axis=1), 1.0)
+    # the canonical face's layout survives: eye and mouth corners keep their left-right order
+    # and the nose tip (landmark 1 or 4) is the most forward midline point
+    x = rig.neutral[:, 0]
+    assert x[33] < x[133] < x[362] < x[263]       # right outer/inner, left inner/outer eye corner
+    assert x[61] < x[291]                          # mouth corners
+    midline = [1, 4, 6, 10, 152, 168, 197, 13, 14]
+    assert rig.neutral[midline, 2].argmax() in (0, 1)
+
+
+def test_default_location_keeps_off_teeth_eyeballs_and_lashes():
+    """Without a given skin, the points snap onto the avatar's main connected part. On ICT that
+    part also holds the mouth and eye sockets (connected to the face): points may land there."""
+    rig = ict_rig()
+    locations, _ = locate_canonical_face(rig.canonical, rig.library.mesh)
+    parts = rig.library.parts
+    corner = locations.corners[:, 0]
+    in_part = {name: int(np.count_nonzero((corner >= a) & (corner < b))) for name, (a, b) in parts.items()}
+    print(f"\ndefault location on ICT, points per part: {in_part}")
+    for name in ("gums_and_tongue", "teeth", "eyeballs", "eye_blend_occlusion", "eyelashes"):
+        assert in_part[name] == 0
+    assert in_part["face"] >= 400
 
 
 def test_shape_model_modes_span_the_examples():
