@@ -107,6 +107,29 @@ def test_closed_loop_weights_track_the_truth():
     assert mae <= 0.08
 
 
+def test_closed_loop_onto_a_different_avatar():
+    """The avatar is the ICT head warped (stretched, sheared, bent; 1.3x the size): the RBF from
+    its neutral landmarks to the actor's carries its shapes into the actor's space, and the
+    weights still track the truth."""
+    rig, take, tracked = ict_rig(), synthetic_take(), tracked_take()
+    a = np.array([[1.3, 0.1, 0.0], [0.05, 1.4, 0.1], [0.0, -0.1, 1.2]])
+
+    def warp(x):
+        return x @ a.T + 0.4 * np.sin(x[..., [1, 2, 0]] / 4.0) + [5.0, -3.0, 2.0]
+
+    avatar_neutral = warp(rig.neutral)
+    avatar_deltas = warp(rig.neutral[None] + rig.deltas) - avatar_neutral[None]
+    solver = WeightSolver(map_blendshapes(avatar_neutral, avatar_deltas, tracked.neutral),
+                          rig.library.names)
+    weights = solver.solve_take(np.array([f.shape - tracked.neutral for f in tracked.fits]))
+    active = take.active
+    corr = np.array([np.corrcoef(weights[:, j], take.weights[:, j])[0, 1] for j in active])
+    mae = np.abs(weights[:, active] - take.weights[:, active]).mean()
+    print(f"\nwarped avatar: 10 active mean corr {corr.mean():.3f} (min {corr.min():.3f}), MAE {mae:.3f}")
+    assert corr.min() >= 0.9
+    assert mae <= 0.08
+
+
 def test_closed_loop_weights_with_outliers():
     rig, take, _, _, _, weights, _ = closed_loop(0.2)
     active = rig.active
