@@ -18,7 +18,7 @@ from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import read_obj
 from exclone_addon.core.retarget import locate_canonical_face
 from exclone_addon.core.tracking import (FRONTAL, Camera, OneEuroFilter, RotationFilter,
-                                         ShapeFitter, ShapeModel, calibrate_neutral,
+                                         ShapeFitter, calibrate_neutral,
                                          expression_shape_model, remove_head_motion)
 
 CANONICAL_FACE = Path(__file__).resolve().parent.parent / "exclone_addon" / "data" / "canonical_face.obj"
@@ -154,7 +154,7 @@ def test_default_location_keeps_off_teeth_eyeballs_and_lashes():
 
 
 def test_shape_model_modes_span_the_examples():
-    from exclone_addon.core.cloning import similarity_transform
+    from exclone_addon.core.registration import similarity_transform
     rig = ict_rig()
     model = rig.model
     k = len(model.eigenvalues)
@@ -242,7 +242,7 @@ def test_outliers_do_not_drag_the_head_pose():
 def test_calibration_learns_the_actor_neutral():
     """The calibrated neutral matches the true (ICT) landmarks up to a similarity; the canonical
     mean it started from does not."""
-    from exclone_addon.core.cloning import similarity_transform
+    from exclone_addon.core.registration import similarity_transform
     rig, tracked = ict_rig(), tracked_take()
 
     def misfit(shape):

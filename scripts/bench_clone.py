@@ -45,11 +45,11 @@ import scipy
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-from exclone_addon.core.cloning import CloneSettings, clone_expressions, similarity_transform  # noqa: E402
+from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
 from exclone_addon.core.mesh import PolyMesh, read_obj, valid_triangles, vertex_parts  # noqa: E402
 from exclone_addon.core.proximity import TriangleSurface  # noqa: E402
-from exclone_addon.core.registration import PRESETS  # noqa: E402
+from exclone_addon.core.registration import PRESETS, similarity_transform  # noqa: E402
 
 DEMO_HEAD = ROOT / "exclone_addon" / "data" / "demo_head.obj"
 FACE_VERTICES = 9409           # ICT-FaceKit's "face" part is vertices [0, 9409)
@@ -240,7 +240,7 @@ def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
     """trimesh's Sumner-Popovic registration on the engine's region, alignment and landmarks."""
     import trimesh
     import trimesh.registration
-    # the same similarity pre-alignment as the engine's (cloning.similarity_transform)
+    # the same similarity pre-alignment as the engine's (registration.similarity_transform)
     rot, scale, shift = similarity_transform(source.vertices[src_lm], target.vertices[tgt_lm])
     aligned = source.vertices @ rot.T * scale + shift
     ids = np.unique(src_region)

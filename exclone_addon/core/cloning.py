@@ -4,7 +4,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from . import deformation
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
@@ -12,7 +11,7 @@ from .errors import ExCloneError
 from .landmarks import automatic_landmarks
 from .mesh import check_mesh, triangle_normals, valid_triangles, vertex_normals, vertex_parts
 from .orientation import face_frame
-from .registration import Schedule, register, similarity_icp
+from .registration import Schedule, register, similarity_icp, similarity_transform
 from .transfer import Transfer
 
 
@@ -35,16 +34,6 @@ class CloneResult:
     registered_source: np.ndarray     # (n_source, 3) source neutral deformed onto the target
     timings: dict = field(default_factory=dict)   # seconds per phase
     quality: dict = field(default_factory=dict)   # e.g. registration_mean_distance_rel
-
-
-def similarity_transform(source_points, target_points):
-    """Least-squares similarity (R, s, t) with target ~ s R source + t."""
-    src_c, dst_c = source_points.mean(axis=0), target_points.mean(axis=0)
-    a, b = source_points - src_c, target_points - dst_c
-    rotation, _ = Rotation.align_vectors(b, a)
-    r = rotation.as_matrix()
-    s = float(np.einsum("ij,ij->", b, a @ r.T) / max(np.einsum("ij,ij->", a, a), 1e-300))
-    return r, s, dst_c - s * r @ src_c
 
 
 def outward_sign(vertices, triangles):

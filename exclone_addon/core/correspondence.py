@@ -39,8 +39,6 @@ class Correspondence:
         return sp.csr_matrix((self.weights, (self.target_triangles, self.source_triangles)),
                              shape=(n_target, n_source))
 
-    def coverage(self, n_target):
-        return len(np.unique(self.target_triangles)) / max(n_target, 1)
 
 
 def _matches(from_vertices, from_tris, from_normals, to_surface, to_normals, samples, max_distance):

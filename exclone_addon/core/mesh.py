@@ -139,12 +139,6 @@ def boundary_vertices(triangles):
     return np.unique(boundary_edges(triangles))
 
 
-def referenced_vertices(n_vertices, triangles):
-    used = np.zeros(n_vertices, dtype=bool)
-    used[triangles.ravel()] = True
-    return used
-
-
 def valid_triangles(vertices, triangles, rel_eps=1e-12):
     """Triangles with three distinct corners and a non-negligible area."""
     distinct = (triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2]) \

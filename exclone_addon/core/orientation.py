@@ -36,8 +36,6 @@ class FaceFrame:
     def to_canonical(self, points):
         return (np.asarray(points) - self.origin) @ self.rotation
 
-    def from_canonical(self, points):
-        return np.asarray(points) @ self.rotation.T + self.origin
 
 
 def surface_samples(vertices, triangles, count=6000, seed=0):

@@ -10,10 +10,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
 from scipy.sparse.linalg import splu
 
 from . import deformation
-from .mesh import boundary_edges, boundary_vertices, vertex_normals
+from .mesh import boundary_edges, boundary_vertices, triangle_areas, vertex_normals
 from .proximity import SegmentSet, TriangleSurface, interpolate
 
 # Closest-point weights per step after the landmark-only solve; w_S = 1, w_I = 0.001 (the thesis').
@@ -98,6 +99,16 @@ def closest_valid_points(points, normals, on_border, surface, surface_normals, b
     return closest, valid, dist
 
 
+def similarity_transform(source_points, target_points):
+    """Least-squares similarity (R, s, t) with target ~ s R source + t."""
+    src_c, dst_c = source_points.mean(axis=0), target_points.mean(axis=0)
+    a, b = source_points - src_c, target_points - dst_c
+    rotation, _ = Rotation.align_vectors(b, a)
+    r = rotation.as_matrix()
+    s = float(np.einsum("ij,ij->", b, a @ r.T) / max(np.einsum("ij,ij->", a, a), 1e-300))
+    return r, s, dst_c - s * r @ src_c
+
+
 def similarity_icp(source_points, source_normals, target_vertices, target_triangles,
                    target_normal_sign=1.0, max_distance=np.inf, iterations=100, sample=2000,
                    tolerance=1e-3):
@@ -108,7 +119,6 @@ def similarity_icp(source_points, source_normals, target_vertices, target_triang
     least-squares similarity; it stops when the mean distance improves by less than `tolerance`
     (relative). Returns (R, s, t) to apply on top of the current positions.
     """
-    from .cloning import similarity_transform   # one Umeyama for the whole core
     surface = TriangleSurface(target_vertices, target_triangles)
     normals_t = target_normal_sign * vertex_normals(target_vertices, target_triangles)
     total_r, total_s, total_t = np.eye(3), 1.0, np.zeros(3)
@@ -268,9 +278,8 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
 
 def _vertex_areas(vertices, triangles):
     """A third of the area of every triangle around each vertex."""
-    area = np.linalg.norm(np.cross(vertices[triangles[:, 1]] - vertices[triangles[:, 0]],
-                                   vertices[triangles[:, 2]] - vertices[triangles[:, 0]]), axis=1) / 6
-    return np.bincount(triangles.ravel(), np.repeat(area, 3), minlength=len(vertices))
+    third = triangle_areas(vertices, triangles) / 3
+    return np.bincount(triangles.ravel(), np.repeat(third, 3), minlength=len(vertices))
 
 
 def _target_pull(source, source_triangles, source_sign, source_border, points, point_normals,

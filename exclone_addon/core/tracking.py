@@ -19,7 +19,7 @@ import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial.transform import Rotation
 
-from .cloning import similarity_transform
+from .registration import similarity_transform
 from .errors import ExCloneError
 
 # Model (canonical face: +Y up, looking along +Z) seen frontally by the camera: turned half a
