@@ -44,7 +44,10 @@ def plane_section(points, triangles, axis, value):
     """Segments (m, 2, 3) where the triangles cut the plane points[:, axis] == value."""
     d = points[triangles, axis] - value                                  # (T, 3)
     a, b = np.array([0, 1, 2]), np.array([1, 2, 0])
-    crosses = (d[:, a] * d[:, b]) < 0                                    # (T, 3) edges
+    # a vertex exactly on the plane (a symmetric mesh's centre line) counts as above it, so the
+    # triangles around it still cut the plane on two edges
+    below = d < 0
+    crosses = below[:, a] != below[:, b]                                 # (T, 3) edges
     cut = np.flatnonzero(crosses.sum(axis=1) == 2)
     tri, da, db = triangles[cut], d[cut][:, a], d[cut][:, b]
     t = np.divide(da, da - db, out=np.zeros_like(da), where=crosses[cut])
