@@ -46,6 +46,92 @@ def session_on_synthetic_take():
     return take, session, results
 
 
+# The astronaut's face centre in skimage's 512x512 photograph, moved to the 640x480 frame's centre.
+FACE_CENTRE = (224.0, 135.0)
+ASTRONAUT_FRAMES = 60
+
+
+@functools.lru_cache(maxsize=1)
+def astronaut():
+    return cv2.cvtColor(data.astronaut(), cv2.COLOR_RGB2BGR)
+
+
+def astronaut_motion(k):
+    """Frame k's known 2x3 motion of the photograph: a turn of up to 15 degrees, scale 0.8-1.2,
+    shifts of up to 80 px (peak speed about 250 px/s at 30 fps)."""
+    t = k / ASTRONAUT_FRAMES
+    matrix = cv2.getRotationMatrix2D(FACE_CENTRE, 15 * np.sin(2 * np.pi * t),
+                                     1 + 0.2 * np.sin(2 * np.pi * 1.5 * t + 1))
+    matrix[:, 2] += (320 - FACE_CENTRE[0] + 80 * np.sin(2 * np.pi * t + 0.5),
+                     240 - FACE_CENTRE[1] + 50 * np.sin(4 * np.pi * t))
+    return matrix
+
+
+def astronaut_frame(k):
+    return cv2.warpAffine(astronaut(), astronaut_motion(k), (640, 480), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+@functools.lru_cache(maxsize=1)
+def astronaut_take():
+    """The moving photograph through a session; the reference points come from the unmoved
+    photograph, processed on its own."""
+    reference = FaceTrackingSession(still_images=True).step(astronaut(), 0.0).landmarks
+    session = FaceTrackingSession()
+    results = [session.step(astronaut_frame(k), k / FPS) for k in range(ASTRONAUT_FRAMES)]
+    return reference, session, results
+
+
+def test_tracked_points_follow_a_known_motion():
+    reference, _, results = astronaut_take()
+    assert all(r.found for r in results), [r.status for r in results if not r.found]
+    iod = np.hypot(*(reference[263, :2] - reference[33, :2]))       # outer eye corners
+    errors = []
+    for k, result in enumerate(results):
+        matrix = astronaut_motion(k)
+        expected = reference[:, :2] @ matrix[:, :2].T + matrix[:, 2]
+        scale = np.sqrt(np.linalg.det(matrix[:, :2]))
+        errors.append(np.hypot(*(result.landmarks[:, :2] - expected).T) / (scale * iod))
+        np.testing.assert_allclose(result.ibug68, result.landmarks[IBUG68_FROM_MEDIAPIPE, :2])
+    errors = np.array(errors)                                        # (frames, 468) in IOD
+    ibug = errors[:, IBUG68_FROM_MEDIAPIPE]
+    print(f"\nastronaut moved over {ASTRONAUT_FRAMES} frames (IOD {iod:.1f} px at scale 1): error "
+          f"per frame, mean over 468 points: worst frame {errors.mean(axis=1).max():.4f}, all "
+          f"frames {errors.mean():.4f} IOD; 68 iBUG points: worst frame "
+          f"{ibug.mean(axis=1).max():.4f}; single worst point {errors.max():.4f}; detections "
+          f"{sum(r.stage_ms['detect'] > 0 for r in results)}")
+    assert errors.mean(axis=1).max() <= 0.03
+    assert ibug.mean(axis=1).max() <= 0.03
+    assert errors.mean() <= 0.015
+    # tracked from the previous frame's region: BlazeFace ran on the first frame only
+    assert [r.stage_ms["detect"] > 0 for r in results] == [True] + [False] * (ASTRONAUT_FRAMES - 1)
+
+
+def test_frames_without_a_face_hold_the_pose_and_tracking_resumes():
+    """10 blank frames in the middle of the take, then the face comes back elsewhere."""
+    session = FaceTrackingSession(calibration_frames=5)
+    before = [session.step(astronaut_frame(k), k / FPS) for k in range(8)]
+    assert all(r.found for r in before) and before[-1].status == "tracking"
+    blank = [session.step(np.full((480, 640, 3), 90, np.uint8), (8 + k) / FPS) for k in range(10)]
+    for result in blank:
+        assert not result.found and result.landmarks is None and result.ibug68 is None
+        assert result.status == "no face in view: holding the last pose"
+        assert (result.rotation.inv() * before[-1].rotation).magnitude() == 0.0
+        np.testing.assert_array_equal(result.translation, before[-1].translation)
+        assert (result.head_rotation.inv() * before[-1].head_rotation).magnitude() == 0.0
+        assert result.stage_ms["detect"] > 0
+    back = [session.step(astronaut_frame(k), k / FPS) for k in range(30, 34)]
+    assert all(r.found and r.status == "tracking" for r in back)
+    matrix = astronaut_motion(33)
+    expected = FaceTrackingSession(still_images=True).step(astronaut(), 0.0).landmarks[:, :2] \
+        @ matrix[:, :2].T + matrix[:, 2]
+    iod = np.hypot(*(expected[263] - expected[33]))
+    assert np.hypot(*(back[-1].landmarks[:, :2] - expected).T).mean() < 0.03 * iod
+    # a session that never saw a face has no pose to hold
+    fresh = FaceTrackingSession().step(np.zeros((480, 640, 3), np.uint8), 0.0)
+    assert not fresh.found and fresh.rotation is None and fresh.status == "no face in view"
+
+
 def test_shipped_tracker_model_is_current():
     # derived data: stale after a change of the library, the canonical face or the engine. The
     # located points are compared (not triangle ids: a point on an edge may change triangle)
@@ -136,3 +222,44 @@ def test_avatar_without_shape_keys_or_motion_is_a_clear_error():
         AvatarRig.from_arrays(vertices, rig.library.mesh.triangles(), np.zeros((0, len(vertices), 3)), [])
     with pytest.raises(ExCloneError, match="moves its face"):
         AvatarRig.from_locations(vertices, np.zeros((2, len(vertices), 3)), ["a", "b"], rig.locations)
+
+
+def chessboard_views(camera, pattern_size=(9, 6), square_px=40, margin_px=40):
+    """Views of a chessboard through known intrinsics: the board image warped by the homography
+    K [r1 r2 t] B^-1, B taking board units (squares) to the board image's pixels."""
+    cols, rows = pattern_size[0] + 1, pattern_size[1] + 1
+    board = np.full((rows * square_px + 2 * margin_px, cols * square_px + 2 * margin_px), 255, np.uint8)
+    for r in range(rows):
+        for c in range(cols):
+            if (r + c) % 2 == 0:
+                y, x = margin_px + r * square_px, margin_px + c * square_px
+                board[y:y + square_px, x:x + square_px] = 0
+    # board units (X, Y) -> board pixels; inner corner (0, 0) is the first squares' shared corner
+    to_pixels = np.array([[square_px, 0, margin_px + square_px - 0.5],
+                          [0, square_px, margin_px + square_px - 0.5], [0, 0, 1.0]])
+    k = np.array([[camera.fx, 0, camera.cx], [0, camera.fy, camera.cy], [0, 0, 1.0]])
+    views = []
+    for angles in ([0, 0, 0], [25, 0, 5], [-25, 10, -5], [0, 30, 10], [10, -30, 0], [-15, -15, 20]):
+        rotation = Rotation.from_euler("xyz", angles, degrees=True).as_matrix()
+        centre = np.array([(pattern_size[0] - 1) / 2, (pattern_size[1] - 1) / 2, 0.0])
+        t = np.array([0.0, 0.0, 16.0]) - rotation @ centre       # the board's middle ahead
+        homography = k @ np.column_stack((rotation[:, 0], rotation[:, 1], t)) @ np.linalg.inv(to_pixels)
+        image = cv2.warpPerspective(board, homography, (640, 480), flags=cv2.INTER_AREA,
+                                    borderValue=200)
+        views.append(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR))
+    return views
+
+
+def test_calibrate_camera_recovers_known_intrinsics():
+    truth = Camera(fx=600.0, fy=615.0, cx=330.0, cy=236.0)
+    views = chessboard_views(truth)
+    camera, rms = calibrate_camera(views, pattern_size=(9, 6))
+    found = np.array([camera.fx, camera.fy, camera.cx, camera.cy])
+    expected = np.array([truth.fx, truth.fy, truth.cx, truth.cy])
+    print(f"\ncamera calibration from {len(views)} synthetic views: fx {camera.fx:.1f} fy "
+          f"{camera.fy:.1f} cx {camera.cx:.1f} cy {camera.cy:.1f} (truth {expected}), RMS {rms:.3f} px")
+    np.testing.assert_allclose(found, expected, rtol=0.01)
+    assert rms < 0.5
+    blank = [np.full((480, 640, 3), 128, np.uint8)] * 5
+    with pytest.raises(ExCloneError, match="found in 2 of the images; at least 3"):
+        calibrate_camera(views[:2] + blank)

@@ -133,6 +133,35 @@ class AvatarRig:
 
 
 # ---------------------------------------------------------------------------- session
+class LandmarkFilter:
+    """One Euro filtering of image landmarks in the face's own frame.
+
+    Each frame's points are brought onto the first frame's by the least-squares 2D similarity
+    (rotation, scale, shift) over all of them; the filter runs there and the result goes back by
+    the same similarity. The similarity, an average over 468 points, hardly jitters and is not
+    filtered, so moving the head costs no lag; what is filtered is the points' motion within the
+    face: jitter at rest, expressions (which the speed adaptation lets through).
+    """
+
+    def __init__(self, min_cutoff=1.5, beta=0.05):
+        self._filter = OneEuroFilter(min_cutoff, beta)
+        self._reference = None
+
+    def __call__(self, points, timestamp):
+        points = np.asarray(points, dtype=np.float64)
+        z = points[:, 0] + 1j * points[:, 1]
+        if self._reference is None:
+            self._reference = z - z.mean()
+        # z ~ a * reference + b with complex a (rotation and scale), b (shift)
+        centre = z.mean()
+        a = np.vdot(self._reference, z - centre) / np.vdot(self._reference, self._reference).real
+        local = (z - centre) / a
+        local_points = np.column_stack((local.real, local.imag, points[:, 2:] / abs(a)))
+        smooth = self._filter(local_points, timestamp)
+        back = a * (smooth[:, 0] + 1j * smooth[:, 1]) + centre
+        return np.column_stack((back.real, back.imag, smooth[:, 2:] * abs(a)))
+
+
 @dataclass
 class FrameResult:
     found: bool
@@ -207,7 +236,7 @@ class FaceTrackingSession:
             "rotation": RotationFilter(min_cutoff=1.0, beta=10.0),
             "translation": OneEuroFilter(min_cutoff=1.0, beta=2.0),
             "params": OneEuroFilter(min_cutoff=2.0, beta=5.0),
-            "landmarks": OneEuroFilter(min_cutoff=1.5, beta=0.05),
+            "landmarks": LandmarkFilter(min_cutoff=1.5, beta=0.05),
         }
 
     def _use_image_size(self, width, height):
