@@ -38,6 +38,12 @@ def default_preset(context):
     return prefs.default_preset if prefs is not None else FALLBACK_PRESET
 
 
+def camera_index(context):
+    """The webcam chosen in the preferences (0, the system's first camera, when not enabled)."""
+    prefs = get(context)
+    return prefs.camera_index if prefs is not None else 0
+
+
 def register():
     bpy.utils.register_class(EXCLONE_AP_preferences)
 
