@@ -264,9 +264,12 @@ def test_automatic_landmark_near_hand_checked(fixtures, fixture_errors, head, na
 def test_shipped_landmark_template_is_current():
     # the template file is derived data: stale after a heuristic or library change
     from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template
-    shipped = json.loads(TEMPLATE_FILE.read_text())["canonical_positions"]
-    fresh = compute_template()
-    assert set(shipped) == set(fresh), "run scripts/make_landmark_template.py"
+    shipped = json.loads(TEMPLATE_FILE.read_text())
+    fresh, (names, ids) = compute_template()
+    positions = shipped["canonical_positions"]
+    assert set(positions) == set(fresh), "run scripts/make_landmark_template.py"
     for name, position in fresh.items():
-        assert np.allclose(shipped[name], position, atol=1e-6), (
+        assert np.allclose(positions[name], position, atol=1e-6), (
             f"{name} changed: run scripts/make_landmark_template.py")
+    assert shipped["library_landmarks"] == dict(zip(names, ids.tolist())), (
+        "the library's landmarks changed: run scripts/make_landmark_template.py")

@@ -467,8 +467,8 @@ def run(args):
 
     clock = time.perf_counter()
     result = clone_expressions(source.mesh, source.deltas, source.names, target.mesh,
-                               landmarks=landmarks, settings=CloneSettings(),
-                               progress=_print_progress())
+                               landmarks=landmarks, source_landmarks=source.automatic_landmarks,
+                               settings=CloneSettings(), progress=_print_progress())
     timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
     timings["clone_total"] = time.perf_counter() - clock
 

@@ -8,6 +8,8 @@ into another. Cases:
 
 - face: the ICT face region (first 9,409 vertices of the bundled library and the polygons among
   them, deltas restricted to them) onto the bundled demo head (MakeHuman, 4,244 vertices);
+  the source's automatic landmarks are the ones shipped with the library (what a clone from the
+  library uses), and seconds_warm_source_landmarks_found is a clone that looks for them too;
 - head: the full ICT head (26,719 vertices, all parts) onto the demo head;
 - face_dense_target: the face region onto the demo head subdivided once (midpoint subdivision,
   same shape, about 4x the vertices): a third size point, for memory against target size;
@@ -88,15 +90,20 @@ def subdivided(mesh):
 
 
 def case_inputs(name):
-    """(source mesh, deltas, names, target mesh) of a case."""
+    """(source mesh, deltas, names, target mesh, source landmarks) of a case. The source's
+    automatic landmarks are the ones the bundled library ships (as in the product: a clone from
+    the library only looks for the target's); the face region keeps those on it."""
     library = load_library()
     target = read_obj(DEMO_HEAD)
+    marks = library.automatic_landmarks
     if name == "head":
-        return library.mesh, library.deltas, library.names, target
+        return library.mesh, library.deltas, library.names, target, marks
     source, deltas = face_region(library)
+    on_face = marks[1] < FACE_VERTICES
+    marks = ([n for n, keep in zip(marks[0], on_face) if keep], marks[1][on_face])
     if name == "face_dense_target":
         target = subdivided(target)
-    return source, deltas, library.names, target
+    return source, deltas, library.names, target, marks
 
 
 def regions(source, target, src_lm, tgt_lm):
@@ -153,15 +160,17 @@ def timed_clone(*args, **kwargs):
 
 
 def run_case(name):
-    source, deltas, names, target = case_inputs(name)
+    source, deltas, names, target, marks = case_inputs(name)
     gc.collect()
     rss_before, peak_was_reset = rss_baseline_mib()
-    cold, cold_cpu = timed_clone(source, deltas, names, target)
+    cold, cold_cpu = timed_clone(source, deltas, names, target, source_landmarks=marks)
     rss_growth = max_rss_mib() - rss_before
-    warm, warm_cpu = timed_clone(source, deltas, names, target)
+    warm, warm_cpu = timed_clone(source, deltas, names, target, source_landmarks=marks)
+    # the same with the source's landmarks looked for too (a user's own source mesh)
+    unshipped, _ = timed_clone(source, deltas, names, target)
     gc.collect()
     tracemalloc.start()
-    traced = clone_expressions(source, deltas, names, target)
+    traced = clone_expressions(source, deltas, names, target, source_landmarks=marks)
     _, traced_peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     quality = cold.quality
@@ -174,6 +183,7 @@ def run_case(name):
         "landmark_count": quality["landmark_count"],
         "seconds_cold": phase_times(cold),
         "seconds_warm": phase_times(warm),
+        "seconds_warm_source_landmarks_found": phase_times(unshipped),
         "cpu_seconds_cold": cold_cpu,
         "cpu_seconds_warm": warm_cpu,
         "peak_rss_growth_mib": round(rss_growth, 1),
@@ -188,8 +198,9 @@ def run_case(name):
 
 
 def run_compare(with_trimesh, repeats=2):
-    source, deltas, names, target = case_inputs("face")
-    first = clone_expressions(source, deltas, names, target)     # the engine's automatic landmarks
+    source, deltas, names, target, marks = case_inputs("face")
+    # the engine's automatic landmarks
+    first = clone_expressions(source, deltas, names, target, source_landmarks=marks)
     src_lm, tgt_lm = first.source_landmarks, first.target_landmarks
     landmarks = {"source": src_lm, "target": tgt_lm}
     src_region, tgt_region = regions(source, target, src_lm, tgt_lm)

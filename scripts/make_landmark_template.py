@@ -1,6 +1,8 @@
 """Write exclone_addon/data/landmark_template.json: the bundled face's landmarks as the template
-that places the non-heuristic landmarks on other faces (core.landmarks). Run it after changing the
-landmark heuristics or the bundled library; blender_tests/test_landmarks.py checks it is current.
+that places the non-heuristic landmarks on other faces (core.landmarks), and the bundled library's
+own automatic landmarks (vertex ids), so a clone from the library only looks for the target's.
+Run it after changing the landmark heuristics or the bundled library;
+blender_tests/test_landmarks.py checks it is current.
 
     .venv/bin/python scripts/make_landmark_template.py
 """
@@ -13,11 +15,13 @@ from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template  # noqa
 
 
 def main():
-    template = compute_template()
+    template, (names, ids) = compute_template()
     data = {
         "about": "canonical positions (+X left, +Y up, +Z forward; library units) of the bundled "
-                 "ICT-FaceKit face's landmarks; made by scripts/make_landmark_template.py",
+                 "ICT-FaceKit face's landmarks, and its automatic landmarks as vertex ids; made by "
+                 "scripts/make_landmark_template.py",
         "canonical_positions": {name: [round(float(c), 9) for c in p] for name, p in template.items()},
+        "library_landmarks": {name: int(i) for name, i in zip(names, ids)},
     }
     TEMPLATE_FILE.write_text(json.dumps(data, indent=1) + "\n")
     print(f"make_landmark_template: wrote {len(template)} landmarks to {TEMPLATE_FILE}")

@@ -30,6 +30,7 @@ class Source:
     names: list
     deltas: np.ndarray
     obj: object = None            # None for the built-in library
+    automatic_landmarks: tuple = None   # (names, ids) found before (the library ships its own)
 
 
 @dataclass
@@ -76,7 +77,8 @@ def _library(path):
 
 def library_source():
     library = _library(BUNDLED_LIBRARY)
-    return Source(LIBRARY_DESCRIPTION, library.mesh, library.names, library.deltas)
+    return Source(LIBRARY_DESCRIPTION, library.mesh, library.names, library.deltas,
+                  automatic_landmarks=library.automatic_landmarks)
 
 
 def object_source(obj):
@@ -117,11 +119,6 @@ def basis_mesh(obj, role):
     return mesh
 
 
-@lru_cache(maxsize=2)
-def _library_landmarks(path):
-    return stored_landmarks.detect(_library(path).mesh)
-
-
 def landmark_pairs(source, target_obj, target_mesh):
     """None (the engine's automatic, soft landmarks) unless a side carries edited landmarks; then
     {"source": ids, "target": ids} of the names both sides have, as hard constraints.
@@ -135,7 +132,7 @@ def landmark_pairs(source, target_obj, target_mesh):
 
     def ids_of(obj, mesh):
         if obj is None:
-            return _library_landmarks(BUNDLED_LIBRARY)
+            return dict(zip(source.automatic_landmarks[0], source.automatic_landmarks[1].tolist()))
         return stored_landmarks.stored(obj) if stored_landmarks.IDS in obj \
             else stored_landmarks.detect(mesh)
 
@@ -173,7 +170,8 @@ def run_engine(source, target_mesh, landmarks, clone_settings, progress=None):
         _cache.move_to_end(key)
         return Run(_cache[key], kind, True)
     result = clone_expressions(source.mesh, source.deltas, source.names, target_mesh,
-                               landmarks=landmarks, settings=clone_settings, progress=progress)
+                               landmarks=landmarks, source_landmarks=source.automatic_landmarks,
+                               settings=clone_settings, progress=progress)
     _cache[key] = result
     while len(_cache) > CACHE_SIZE:
         _cache.popitem(last=False)

@@ -73,12 +73,39 @@ def _parts_of(ids, n_vertices, triangles):
     return triangles[keep[triangles[:, 0]]]
 
 
-def clone_expressions(source, source_deltas, names, target, *, landmarks=None, settings=None,
-                      progress=None):
-    """Clone every source expression onto the target.
+@dataclass
+class FaceFit:
+    """Registration and correspondence of a source face onto a target: all the transfer needs.
 
-    source, target: PolyMesh. source_deltas: (E, n_source, 3). names: E strings.
-    landmarks: None for automatic ones, or {"source": ids, "target": ids} (same length).
+    One fit serves any number of transfers (e.g. Register, then Clone of a chosen subset)."""
+    source_vertex_count: int
+    target: object                    # PolyMesh
+    target_region: np.ndarray         # (T, 3) the target triangles that get gradients
+    source_region: np.ndarray         # (S, 3) the registered source triangles
+    rotation: np.ndarray              # (3, 3) \
+    scale: float                      #          > similarity source -> target frame
+    aligned_source: np.ndarray        # (n_source, 3) the source neutral after that similarity
+    vertex_map: object                # correspondence.VertexMap of target vertices onto the source
+    mapped: np.ndarray                # (T,) target triangles that take their image's gradient
+    pairs: object                     # (T, S) sparse triangle pairs (elsewhere)
+    weights: np.ndarray               # (T,) each target triangle's weight in the transfer
+    formulation: str
+    source_landmarks: np.ndarray
+    target_landmarks: np.ndarray
+    landmark_names: list
+    registered_source: np.ndarray
+    timings: dict = field(default_factory=dict)
+    quality: dict = field(default_factory=dict)
+    _transfer: object = None          # the factorised system, made on the first transfer
+
+
+def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings=None,
+              progress=None):
+    """Landmarks, registration and correspondence of source onto target (PolyMesh each).
+
+    landmarks: None for automatic ones, or {"source": ids, "target": ids} (same length; hard).
+    source_landmarks: with automatic landmarks, the source's found before as (names, ids) (the
+    bundled library ships its own): only the target's are looked for.
     progress: optional callable(fraction, message); it may raise core.errors.Cancelled.
     Raises ExCloneError with a user-facing message on bad input.
     """
@@ -87,7 +114,6 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
         raise ExCloneError(f"unknown formulation {settings.formulation!r}")
     timings = {}
     clock = time.perf_counter()
-    start = clock
 
     def lap(name):
         nonlocal clock
@@ -101,13 +127,6 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
 
     src_v = np.asarray(source.vertices, dtype=np.float64)
     tgt_v = np.asarray(target.vertices, dtype=np.float64)
-    deltas = np.asarray(source_deltas, dtype=np.float64)
-    if deltas.ndim != 3 or deltas.shape[1:] != src_v.shape:
-        raise ExCloneError(f"expression deltas have shape {deltas.shape}; expected (E, {len(src_v)}, 3)")
-    if len(names) != len(deltas):
-        raise ExCloneError(f"{len(names)} names for {len(deltas)} expressions")
-    if not np.all(np.isfinite(deltas)):
-        raise ExCloneError("source expressions contain NaN or infinite values")
     src_all, tgt_all = source.triangles(), target.triangles()
     check_mesh(src_v, src_all, "source mesh")
     check_mesh(tgt_v, tgt_all, "target mesh")
@@ -117,10 +136,13 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     # 1. Landmarks
     report(0.0, "landmarks")
     if landmarks is None:
-        src_frame = face_frame(src_v, src_tris)
-        tgt_frame = face_frame(tgt_v, tgt_tris)
-        src_names, src_ids = automatic_landmarks(src_v, src_tris, src_frame)
-        tgt_names, tgt_ids = automatic_landmarks(tgt_v, tgt_tris, tgt_frame)
+        if source_landmarks is None:
+            src_names, src_ids = automatic_landmarks(src_v, src_tris, face_frame(src_v, src_tris))
+        else:
+            src_names, src_ids = list(source_landmarks[0]), np.asarray(source_landmarks[1])
+            if len(src_names) != len(src_ids) or np.any(src_ids < 0) or np.any(src_ids >= len(src_v)):
+                raise ExCloneError("the source's landmarks do not fit its mesh")
+        tgt_names, tgt_ids = automatic_landmarks(tgt_v, tgt_tris, face_frame(tgt_v, tgt_tris))
         common = [n for n in src_names if n in tgt_names]
         src_lm = np.array([src_ids[src_names.index(n)] for n in common])
         tgt_lm = np.array([tgt_ids[tgt_names.index(n)] for n in common])
@@ -131,7 +153,7 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     lap("landmarks")
 
     # 2. Registration of the source parts the landmarks are on, in the target's frame
-    report(0.15, "registration")
+    report(0.2, "registration")
     src_region = _parts_of(src_lm, len(src_v), src_tris)
     tgt_region = _parts_of(tgt_lm, len(tgt_v), tgt_tris)
     rot, scale, shift = similarity_transform(src_v[src_lm], tgt_v[tgt_lm])
@@ -149,11 +171,11 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
         r2, s2, t2 = similarity_icp(aligned[region_ids], normals[region_ids], tgt_v, tgt_region,
                                     tgt_sign, settings.max_distance * diag)
         aligned = aligned @ r2.T * s2 + t2
-        rot, scale, shift = r2 @ rot, s2 * scale, s2 * (r2 @ shift) + t2
+        rot, scale = r2 @ rot, s2 * scale
         schedule.landmark_weight = settings.landmark_weight
 
     def registration_progress(fraction, message):
-        report(0.15 + 0.55 * fraction, message)
+        report(0.2 + 0.65 * fraction, message)
 
     reg = register(aligned, src_region, tgt_v, tgt_region, src_lm, tgt_v[tgt_lm],
                    formulation=settings.formulation, schedule=schedule,
@@ -166,7 +188,7 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
             "face found the target surface; check the landmarks")
 
     # 3. Correspondence: the vertex map where plausible, triangle pairs elsewhere
-    report(0.7, "correspondence")
+    report(0.85, "correspondence")
     max_distance = settings.max_distance * diag
     tgt_normals = tgt_sign * vertex_normals(tgt_v, tgt_region)
     vertex_map = map_vertices(reg.vertices, src_region, tgt_v, tgt_normals, np.unique(tgt_region),
@@ -179,43 +201,10 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
     pairs = triangle_correspondence(reg.vertices, src_region, tgt_v, tgt_region, max_distance,
                                     src_sign, tgt_sign, wanted=~mapped)
     pairs = pairs.matrix(len(tgt_region), len(src_region))
-    pair_weight = np.asarray(pairs.sum(axis=1)).ravel()
-    weights = np.where(mapped, 1.0, pair_weight)
+    weights = np.where(mapped, 1.0, np.asarray(pairs.sum(axis=1)).ravel())
     if not np.any(weights > 0):
         raise ExCloneError("no triangle of the target corresponds to the source; check the landmarks")
     lap("correspondence")
-
-    # 4. Transfer: source gradients per target triangle, one factorisation for all expressions
-    report(0.8, "transfer")
-    aligned_deltas = deltas @ rot.T * scale
-    # the source at each mapped target vertex, sampled once: rest position and displacements
-    anchors = np.flatnonzero(vertex_map.valid)
-    rest_at = np.zeros((len(tgt_v), 3))
-    moves_at = np.zeros((len(deltas), len(tgt_v), 3))
-    rest_at[anchors] = vertex_map.sample(aligned, src_region, anchors)
-    moves_at[:, anchors] = np.moveaxis(
-        vertex_map.sample(np.moveaxis(aligned_deltas, 0, 1), src_region, anchors), 1, 0)
-    wanted = np.zeros((len(deltas), len(tgt_region), 3, 3))
-    if mapped.any():
-        corners = tgt_region[mapped]
-        rest = rest_at[corners]                                                 # (m, 3, 3)
-        wanted[:, mapped] = deformation.corner_gradients(rest, rest + moves_at[:, corners])
-    paired = ~mapped & (pair_weight > 0)
-    if paired.any():
-        rows = pairs[paired]
-        used = np.unique(rows.indices)              # only the source triangles some pair uses
-        gradients = deformation.full_gradients(aligned, aligned + aligned_deltas, src_region[used])
-        flat = np.moveaxis(gradients, 0, 1).reshape(len(used), -1)                  # (U, E*9)
-        mean = (rows[:, used] @ flat) / pair_weight[paired, None]
-        wanted[:, paired] = np.moveaxis(mean.reshape(-1, len(deltas), 3, 3), 1, 0)
-    transfer = Transfer(tgt_v, tgt_region, weights, settings.formulation)
-    result = transfer(wanted, moves_at[:, anchors], anchors)
-    _follow_degenerate(result, tgt_v, tgt_all, tgt_region)
-    lap("transfer")
-    if not np.all(np.isfinite(result)):
-        raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
-
-    timings["total"] = time.perf_counter() - start
     quality = {
         "registration_mean_distance": reg.mean_distance,
         "registration_mean_distance_rel": reg.mean_distance / diag,
@@ -227,9 +216,86 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None, s
         "similarity_scale": scale,
         "target_diagonal": diag,
     }
-    report(1.0, "done")
-    return CloneResult(list(names), result, src_lm, tgt_lm, landmark_names, reg.vertices,
-                       timings, quality)
+    report(1.0, "fitted")
+    return FaceFit(len(src_v), target, tgt_region, src_region, rot, scale, aligned, vertex_map,
+                   mapped, pairs, weights, settings.formulation, src_lm, tgt_lm, landmark_names,
+                   reg.vertices, timings, quality)
+
+
+def _checked_deltas(source_deltas, names, n_source):
+    deltas = np.asarray(source_deltas, dtype=np.float64)
+    if deltas.ndim != 3 or deltas.shape[1:] != (n_source, 3):
+        raise ExCloneError(f"expression deltas have shape {deltas.shape}; expected (E, {n_source}, 3)")
+    if len(names) != len(deltas):
+        raise ExCloneError(f"{len(names)} names for {len(deltas)} expressions")
+    if not np.all(np.isfinite(deltas)):
+        raise ExCloneError("source expressions contain NaN or infinite values")
+    return deltas
+
+
+def transfer_expressions(fit, source_deltas, names):
+    """Every source expression onto the fitted target: CloneResult (timings and quality include
+    the fit's). The transfer system is factorised once per fit and reused by later calls."""
+    start = time.perf_counter()
+    deltas = _checked_deltas(source_deltas, names, fit.source_vertex_count)
+    tgt_v = np.asarray(fit.target.vertices, dtype=np.float64)
+    tgt_region, src_region, mapped = fit.target_region, fit.source_region, fit.mapped
+    aligned_deltas = deltas @ fit.rotation.T * fit.scale
+    # the source at each mapped target vertex, sampled once: rest position and displacements
+    anchors = np.flatnonzero(fit.vertex_map.valid)
+    rest_at = np.zeros((len(tgt_v), 3))
+    moves_at = np.zeros((len(deltas), len(tgt_v), 3))
+    rest_at[anchors] = fit.vertex_map.sample(fit.aligned_source, src_region, anchors)
+    moves_at[:, anchors] = np.moveaxis(
+        fit.vertex_map.sample(np.moveaxis(aligned_deltas, 0, 1), src_region, anchors), 1, 0)
+    wanted = np.zeros((len(deltas), len(tgt_region), 3, 3))
+    if mapped.any():
+        corners = tgt_region[mapped]
+        rest = rest_at[corners]                                                 # (m, 3, 3)
+        wanted[:, mapped] = deformation.corner_gradients(rest, rest + moves_at[:, corners])
+    paired = ~mapped & (fit.weights > 0)
+    if paired.any():
+        rows = fit.pairs[paired]
+        used = np.unique(rows.indices)              # only the source triangles some pair uses
+        gradients = deformation.full_gradients(fit.aligned_source, fit.aligned_source + aligned_deltas,
+                                               src_region[used])
+        flat = np.moveaxis(gradients, 0, 1).reshape(len(used), -1)                  # (U, E*9)
+        mean = (rows[:, used] @ flat) / fit.weights[paired, None]
+        wanted[:, paired] = np.moveaxis(mean.reshape(-1, len(deltas), 3, 3), 1, 0)
+    if fit._transfer is None:
+        fit._transfer = Transfer(tgt_v, tgt_region, fit.weights, fit.formulation)
+    result = fit._transfer(wanted, moves_at[:, anchors], anchors)
+    _follow_degenerate(result, tgt_v, fit.target.triangles(), tgt_region)
+    if not np.all(np.isfinite(result)):
+        raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
+    timings = dict(fit.timings, transfer=time.perf_counter() - start)
+    timings["total"] = sum(timings.values())
+    return CloneResult(list(names), result, fit.source_landmarks, fit.target_landmarks,
+                       fit.landmark_names, fit.registered_source, timings, dict(fit.quality))
+
+
+def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
+                      source_landmarks=None, settings=None, progress=None):
+    """Clone every source expression onto the target: fit_faces, then transfer_expressions.
+
+    source, target: PolyMesh. source_deltas: (E, n_source, 3). names: E strings.
+    landmarks, source_landmarks, progress: as fit_faces.
+    Raises ExCloneError with a user-facing message on bad input.
+    """
+    deltas = _checked_deltas(source_deltas, names, len(source.vertices))   # before the long part
+
+    def fit_progress(fraction, message):
+        if progress:
+            progress(0.8 * fraction, message)
+
+    fit = fit_faces(source, target, landmarks=landmarks, source_landmarks=source_landmarks,
+                    settings=settings, progress=fit_progress)
+    if progress:
+        progress(0.8, "transfer")
+    result = transfer_expressions(fit, deltas, names)
+    if progress:
+        progress(1.0, "done")
+    return result
 
 
 def _follow_degenerate(result, vertices, all_tris, used_tris):

@@ -256,10 +256,12 @@ TEMPLATE_FILE = Path(__file__).resolve().parent.parent / "data" / "landmark_temp
 
 
 def compute_template():
-    """The bundled library's face as template: its canonical landmark positions by name.
+    """The bundled library's face as template: its canonical landmark positions by name, and
+    its own automatic landmarks (names, vertex ids) found with that template.
 
     Shipped precomputed in TEMPLATE_FILE (scripts/make_landmark_template.py writes it; a test
-    checks it is current), since computing it costs a second on every first clone.
+    checks it is current): computing them costs a second on every first clone, and the library's
+    landmarks another 0.7 s on every clone from it.
     """
     from .library import load_library
     lib = load_library()
@@ -271,23 +273,37 @@ def compute_template():
     # heuristics' version, so template and target are placed by the same rule
     ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items() if name not in ids})
     q = frame.to_canonical(verts)
-    return {name: q[v] for name, v in ids.items()}
+    template = {name: q[v] for name, v in ids.items()}
+    return template, automatic_landmarks(verts, tris, frame, template)
 
 
 @lru_cache(maxsize=1)
+def _shipped():
+    return json.loads(TEMPLATE_FILE.read_text())
+
+
 def _template():
-    data = json.loads(TEMPLATE_FILE.read_text())
-    return {name: np.array(position) for name, position in data["canonical_positions"].items()}
+    return {name: np.array(position) for name, position in _shipped()["canonical_positions"].items()}
 
 
-def automatic_landmarks(vertices, triangles, frame=None):
+def library_landmarks():
+    """The bundled library's automatic landmarks, shipped: (names, vertex ids); None before
+    scripts/make_landmark_template.py first wrote them."""
+    marks = _shipped().get("library_landmarks")
+    if marks is None:
+        return None
+    return list(marks), np.array(list(marks.values()), dtype=np.int64)
+
+
+def automatic_landmarks(vertices, triangles, frame=None, template=None):
     """Heuristic landmarks plus template ones: (names, vertex ids), in NAMES order.
 
+    template: {name: canonical position}; the shipped one by default.
     Raises ExCloneError if too few heuristic points are found to place the template.
     """
     frame = frame or face_frame(vertices, triangles)
     found = heuristic_landmarks(vertices, triangles, frame)
-    template = _template()
+    template = template if template is not None else _template()
     shared = [n for n in RBF_SOURCES if n in found and n in template]
     if len(shared) < 6:
         missing = ", ".join(n for n in RBF_SOURCES if n not in found)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ExCloneError
+from .landmarks import library_landmarks
 from .mesh import PolyMesh, read_obj
 
 BUNDLED_LIBRARY = Path(__file__).resolve().parent.parent / "data" / "ict_arkit_library.npz"
@@ -44,6 +45,8 @@ class ExpressionLibrary:
     deltas: np.ndarray          # (E, n, 3) float64: expression e = neutral + deltas[e]
     landmarks68: np.ndarray = None                   # (68,) vertex ids, iBUG order, or None
     parts: dict = field(default_factory=dict)        # name -> (start, stop) vertex range
+    # its automatic landmarks found once, (names, vertex ids): shipped for the bundled library
+    automatic_landmarks: tuple = None
 
     def subset(self, names):
         """The library restricted to `names`, in that order."""
@@ -54,7 +57,7 @@ class ExpressionLibrary:
                                f"available: {', '.join(self.names)}")
         rows = [index[name] for name in names]
         return ExpressionLibrary(self.mesh, list(names), self.deltas[rows], self.landmarks68,
-                                 dict(self.parts))
+                                 dict(self.parts), self.automatic_landmarks)
 
 
 def load_library(path=None):
@@ -91,8 +94,10 @@ def load_library(path=None):
         raise ExCloneError(f"expression library {path} is corrupt (inconsistent array sizes)")
     deltas = np.zeros((len(names), n, 3))
     deltas[moving] = values
+    bundled = path.resolve() == BUNDLED_LIBRARY.resolve()
     return ExpressionLibrary(PolyMesh(vertices, loop_totals, loop_vertices), names, deltas,
-                             landmarks if len(landmarks) else None, parts)
+                             landmarks if len(landmarks) else None, parts,
+                             library_landmarks() if bundled else None)
 
 
 def load_obj_folder(folder):

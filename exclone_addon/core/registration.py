@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from scipy.sparse.linalg import splu
 
 from . import deformation
-from .mesh import boundary_edges, boundary_vertices, triangle_areas, vertex_normals
+from .mesh import boundary_edges, triangle_areas, vertex_normals
 from .proximity import SegmentSet, TriangleSurface, interpolate
 
 # Closest-point weights per step after the landmark-only solve; w_S = 1, w_I = 0.001 (the thesis').
@@ -198,21 +198,22 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
 
     surface = TriangleSurface(target_vertices, target_triangles)
     target_normals = target_normal_sign * vertex_normals(target_vertices, target_triangles)
+    target_edges = boundary_edges(target_triangles)
+    target_border_ids = np.unique(target_edges)
     border = np.zeros(len(target_vertices), dtype=bool)
-    border[boundary_vertices(target_triangles)] = True
-    source_border = np.zeros(n, dtype=bool)
-    source_border[boundary_vertices(source_triangles)] = True
-    target_border_edges = SegmentSet(target_vertices, boundary_edges(target_triangles))
+    border[target_border_ids] = True
     source_border_edges = boundary_edges(source_triangles)
+    source_border = np.zeros(n, dtype=bool)
+    source_border[source_border_edges.ravel()] = True
+    target_border_edges = SegmentSet(target_vertices, target_edges)
     # Target points pull the source too (symmetric closest points): without it the source can
     # settle on part of the target and leave the rest uncovered. Each target vertex weighs its
     # share of the surface in units of a source vertex's share, so density does not matter.
-    target_ids = np.setdiff1d(np.unique(target_triangles), boundary_vertices(target_triangles))
+    target_ids = np.setdiff1d(np.unique(target_triangles), target_border_ids)
     source_area = _vertex_areas(source_vertices, source_triangles)[region].mean()
     target_share = _vertex_areas(target_vertices, target_triangles)[target_ids] / source_area
     # border vertices weigh their share of the border's length in source edge lengths (= 1)
-    target_border_ids = boundary_vertices(target_triangles)
-    target_border_share = _border_lengths(target_vertices, boundary_edges(target_triangles))[target_border_ids]
+    target_border_share = _border_lengths(target_vertices, target_edges)[target_border_ids]
     solver = ReusedOrderingSolver()
     history = []
     # the landmark-only solve starts a fit from hard landmarks; soft ones start from the surfaces
@@ -256,10 +257,12 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
             pin = np.where(hard, schedule.landmark_weight * max(w_c, 1.0), 0.0)
             matrix = matrix + sp.diags(pin)
             rhs = rhs + pin[:, None] * landmark_targets
+        if not fixed.any():
+            x = solver.solve(matrix, rhs)
+            continue
         free = ~fixed
-        a_ff = sp.csr_matrix(matrix)[free][:, free]
-        b_f = rhs[free] - sp.csr_matrix(matrix)[free][:, fixed] @ x[fixed]
-        x[free] = solver.solve(a_ff, b_f)
+        matrix = sp.csr_matrix(matrix)
+        x[free] = solver.solve(matrix[free][:, free], rhs[free] - matrix[free][:, fixed] @ x[fixed])
     # The fit error counts where the surfaces overlap: source parts that reach past the target
     # (a neck below a head's cut) have no closest point to be measured against.
     normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
