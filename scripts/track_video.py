@@ -1,0 +1,269 @@
+"""Track a face offline: a video file, a camera or a folder of images -> one JSON file.
+
+    python scripts/track_video.py INPUT [--avatar FILE.blend[:Object]] [--out OUT.json]
+        [--camera-fx F] [--camera-fy F] [--camera-cx X] [--camera-cy Y] [--frames N]
+        [--fps R] [--calibration-frames N] [--still-images]
+
+INPUT: a video file, a camera index (0, 1, ...) or a folder of images (sorted by name). Per frame
+the JSON holds the 468 FaceMesh landmarks, the 68-point subset in iBUG 300-W order (image pixels,
+OpenCV convention: the centre of pixel (i, j) is (i, j)), the head pose (model -> camera rotation
+as a quaternion x, y, z, w and a translation in the model's cm, OpenCV camera axes), the
+shape-key weights by name when an avatar is given, and the time spent per stage; a header
+describes the source, frame size, camera intrinsics and model versions.
+
+--still-images: every frame is an unrelated photograph (e.g. an annotated test set): detection
+on each, no temporal filtering, intrinsics from each image's size unless given.
+--avatar needs Blender's bpy module (.venv/bin/python has it): the avatar's shape keys are read
+from the .blend (or .fbx/.glb, or a folder with neutral.obj + one OBJ per shape), nothing is
+written to it. Exit code 0 on success; otherwise 1 and one line on stderr.
+"""
+import argparse
+import contextlib
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO))
+from exclone_addon.core import capture, face_models, live  # noqa: E402
+from exclone_addon.core.errors import ExCloneError  # noqa: E402
+from exclone_addon.core.tracking import Camera  # noqa: E402
+
+FORMAT = "exclone-track"
+FORMAT_VERSION = 1
+DEFAULT_CAMERA_FRAMES = 300
+PROG = "track_video"
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        raise ExCloneError(message)
+
+
+def parse_args(argv):
+    parser = _Parser(prog="track_video.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("input", help="video file, camera index or folder of images")
+    parser.add_argument("--avatar", metavar="FILE.blend[:Object]",
+                        help="mesh with shape keys whose weights are solved per frame (needs bpy)")
+    parser.add_argument("--out", metavar="OUT.json",
+                        help="output (default: out/<input name>_track.json)")
+    for axis in ("fx", "fy", "cx", "cy"):
+        parser.add_argument(f"--camera-{axis}", type=float, metavar="PX",
+                            help="camera intrinsics in pixels (default: f = max(width, height), "
+                                 "the image centre)")
+    parser.add_argument("--frames", type=int, metavar="N",
+                        help=f"stop after N frames (a camera: default {DEFAULT_CAMERA_FRAMES})")
+    parser.add_argument("--fps", type=float, metavar="R",
+                        help="frame rate given to a folder's images (default 30)")
+    parser.add_argument("--calibration-frames", type=int, default=30, metavar="N",
+                        help="frames with a face that calibrate the actor's neutral (default 30)")
+    parser.add_argument("--still-images", action="store_true",
+                        help="treat every frame as an unrelated photograph")
+    args = parser.parse_args(argv)
+    if args.frames is not None and args.frames < 1:
+        raise ExCloneError(f"--frames must be at least 1, got {args.frames}")
+    if args.fps is not None and args.fps <= 0:
+        raise ExCloneError(f"--fps must be positive, got {args.fps}")
+    if args.calibration_frames < 1:
+        raise ExCloneError(f"--calibration-frames must be at least 1, got {args.calibration_frames}")
+    for axis in ("fx", "fy"):
+        value = getattr(args, f"camera_{axis}")
+        if value is not None and value <= 0:
+            raise ExCloneError(f"--camera-{axis} must be positive, got {value:g}")
+    return args
+
+
+def output_path(args):
+    if args.out:
+        out = Path(args.out)
+    else:
+        name = f"camera{args.input.strip()}" if args.input.strip().isdigit() else Path(args.input).stem
+        out = Path("out") / f"{name}_track.json"
+    if out.suffix.lower() != ".json":
+        raise ExCloneError(f"--out must name a .json file, got {out}")
+    if out.is_dir():
+        raise ExCloneError(f"output {out} is a folder")
+    return out
+
+
+def load_avatar(spec):
+    """AvatarRig of a mesh with shape keys, read with Blender (bpy) through the batch loader."""
+    try:
+        import bpy  # noqa: F401
+    except ImportError:
+        raise ExCloneError("--avatar needs Blender's bpy module: run with .venv/bin/python or "
+                           "blender -b --python") from None
+    from exclone_addon.batch import load_source
+    try:
+        source, description, _ = load_source(spec)
+    except ExCloneError as exc:
+        # the batch loader calls what it reads a "source"
+        raise ExCloneError("--avatar " + str(exc).removeprefix("source ")) from None
+    rig = live.AvatarRig.from_arrays(source.mesh.vertices, source.mesh.triangles(), source.deltas,
+                                     source.names)
+    return rig, description
+
+
+def _file_digest(path):
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:16]
+
+
+def model_versions():
+    import cv2
+    models = face_models.MODELS_DIR
+    return {
+        "detector": {"file": face_models.DETECTOR_MODEL, "from": "mediapipe 0.10.21",
+                     "sha256_16": _file_digest(models / face_models.DETECTOR_MODEL)},
+        "landmarks": {"file": face_models.LANDMARK_MODEL, "from": "mediapipe 0.10.21",
+                      "sha256_16": _file_digest(models / face_models.LANDMARK_MODEL)},
+        "tracker_model": {"file": live.TRACKER_MODEL_FILE.name, "format": live.TRACKER_MODEL_VERSION,
+                          "sha256_16": _file_digest(live.TRACKER_MODEL_FILE)},
+        "opencv": cv2.__version__, "numpy": np.__version__,
+    }
+
+
+def _rounded(array, decimals):
+    return np.round(np.asarray(array, dtype=np.float64), decimals).tolist()
+
+
+def frame_record(frame, result):
+    record = {"index": frame.index, "timestamp": round(frame.timestamp, 6), "found": result.found,
+              "status": result.status}
+    if result.found:
+        record["landmarks"] = _rounded(result.landmarks, 3)
+        record["ibug68"] = _rounded(result.ibug68, 3)
+    if result.rotation is not None:
+        record["head_pose"] = {"quaternion_xyzw": _rounded(result.rotation.as_quat(), 7),
+                               "translation": _rounded(result.translation, 5)}
+    if result.head_rotation is not None:
+        record["head_rotation_blender_xyzw"] = _rounded(result.head_rotation.as_quat(), 7)
+    if result.weights is not None:
+        record["weights"] = {name: round(value, 5) for name, value in result.weights.items()}
+    record["stage_ms"] = {name: round(ms, 3) for name, ms in result.stage_ms.items()}
+    return record
+
+
+def run(args):
+    out = output_path(args)
+    avatar, avatar_description = (None, None)
+    if args.avatar:
+        avatar, avatar_description = load_avatar(args.avatar)
+    given = {axis: getattr(args, f"camera_{axis}") for axis in ("fx", "fy", "cx", "cy")}
+    records, sizes = [], set()
+    with capture.open_source(args.input, frame_rate=args.fps) as source:
+        width, height = source.frame_size
+        camera = None
+        if any(v is not None for v in given.values()) or not args.still_images:
+            camera = Camera.from_image_size(width, height, **given)
+        session = live.FaceTrackingSession(avatar=avatar, camera=camera,
+                                           calibration_frames=args.calibration_frames,
+                                           still_images=args.still_images)
+        limit = args.frames or (DEFAULT_CAMERA_FRAMES if source.is_live else None)
+        start = time.perf_counter()
+        while limit is None or len(records) < limit:
+            frame = source.read()
+            if frame is None:
+                break
+            if not args.still_images and (frame.image.shape[1], frame.image.shape[0]) != (width, height):
+                raise ExCloneError(f"frame {frame.index} is {frame.image.shape[1]}x"
+                                   f"{frame.image.shape[0]}, the first was {width}x{height}; "
+                                   "give --still-images for images of different sizes")
+            sizes.add((frame.image.shape[1], frame.image.shape[0]))
+            step_start = time.perf_counter()
+            result = session.step(frame.image, frame.timestamp)
+            record = frame_record(frame, result)
+            record["stage_ms"]["total"] = round(1000 * (time.perf_counter() - step_start), 3)
+            if camera is None:
+                record["camera"] = _camera_dict(session.camera)
+            records.append(record)
+        elapsed = time.perf_counter() - start
+        header = {
+            "format": FORMAT, "format_version": FORMAT_VERSION,
+            "source": {"input": args.input, "description": source.description,
+                       "is_live": source.is_live, "frame_rate": source.frame_rate,
+                       "frame_size": [width, height],
+                       "frame_sizes_vary": len(sizes) > 1},
+            # still images without given intrinsics: each frame's own, in its record
+            "camera": dict(_camera_dict(camera) if camera else {"per_frame": True},
+                           given=sorted(k for k, v in given.items() if v is not None)),
+            "conventions": {
+                "pixels": "OpenCV: the centre of pixel (column i, row j) is (i, j)",
+                "landmarks": "468 MediaPipe FaceMesh points: x, y image pixels, z FaceMesh depth "
+                             "(pixels, smaller towards the camera)",
+                "ibug68": "iBUG 300-W 68-point order (0-based), image pixels",
+                "head_pose": "model (canonical face, cm, +Y up, looking along +Z) -> camera "
+                             "(x right, y down, z forward); quaternion x, y, z, w",
+                "head_rotation_blender": "relative to the calibrated neutral, Blender axes "
+                                         "(+Z up, -Y forward)",
+            },
+            "models": model_versions(),
+            "avatar": ({"input": args.avatar, "description": avatar_description,
+                        "shape_keys": avatar.names} if avatar else None),
+            "still_images": args.still_images,
+            "calibration_frames": args.calibration_frames,
+        }
+    found = [r for r in records if r["found"]]
+    stages = sorted({k for r in records for k in r["stage_ms"]})
+    header["summary"] = {
+        "frames": len(records), "frames_with_face": len(found), "seconds": round(elapsed, 3),
+        "median_ms": {k: round(float(np.median([r["stage_ms"].get(k, 0.0) for r in records])), 3)
+                      for k in stages} if records else {},
+    }
+    header["frames"] = records
+    out.parent.mkdir(parents=True, exist_ok=True)
+    temporary = out.with_name(out.name + ".part")
+    temporary.write_text(json.dumps(header, separators=(",", ":")) + "\n")
+    os.replace(temporary, out)
+    print(f"track_video: {len(records)} frames ({len(found)} with a face) from "
+          f"{header['source']['description']} -> {out}")
+    return header
+
+
+def _camera_dict(camera):
+    return {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy}
+
+
+@contextlib.contextmanager
+def _stderr_to_stdout():
+    """OpenCV's video backends and Blender log to stderr (e.g. a missing camera): send it to
+    stdout meanwhile, so that stderr carries only our one-line error."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = os.dup(2)
+    os.dup2(1, 2)
+    try:
+        yield
+    finally:
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
+def main(argv):
+    try:
+        with _stderr_to_stdout():
+            run(parse_args(argv))
+        return 0
+    except ExCloneError as exc:
+        message = str(exc)
+    except OSError as exc:
+        message = str(exc)
+    except KeyboardInterrupt:
+        message = "interrupted"
+    except Exception as exc:  # one line for the user; EXCLONE_DEBUG=1 shows the traceback
+        if os.environ.get("EXCLONE_DEBUG"):
+            raise
+        message = (f"internal error ({type(exc).__name__}: {exc}); "
+                   "run with EXCLONE_DEBUG=1 for the traceback")
+    print(f"{PROG}: error: " + " ".join(message.split()), file=sys.stderr, flush=True)
+    return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
