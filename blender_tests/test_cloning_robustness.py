@@ -68,3 +68,29 @@ def test_mismatched_deltas_are_a_clear_error(source):
         clone_expressions(mesh, deltas[:, :100], list(NAMES), read_obj(DEMO_HEAD))
     with pytest.raises(ExCloneError, match="names"):
         clone_expressions(mesh, deltas, ["only_one"], read_obj(DEMO_HEAD))
+
+
+def test_one_fit_serves_several_transfers_and_shipped_landmarks_match_found_ones():
+    """fit_faces + transfer_expressions give what clone_expressions gives, the second transfer
+    reuses the factorisation, and the library's shipped landmarks are the ones it would find."""
+    from exclone_addon.core.cloning import fit_faces, transfer_expressions
+    from exclone_addon.core.landmarks import automatic_landmarks
+    lib = load_library()
+    names, ids = lib.automatic_landmarks
+    found_names, found_ids = automatic_landmarks(lib.mesh.vertices, lib.mesh.triangles())
+    assert list(found_names) == list(names) and np.array_equal(found_ids, ids)
+
+    subset = lib.subset(list(NAMES))
+    target = read_obj(DEMO_HEAD)
+    fit = fit_faces(lib.mesh, target, source_landmarks=lib.automatic_landmarks)
+    both = transfer_expressions(fit, subset.deltas, list(NAMES))
+    factorised = fit._transfer
+    one = transfer_expressions(fit, subset.deltas[1:], list(NAMES[1:]))
+    assert fit._transfer is factorised
+    np.testing.assert_allclose(one.deltas[0], both.deltas[1], atol=1e-12)
+    whole = clone_expressions(lib.mesh, subset.deltas, list(NAMES), target,
+                              source_landmarks=lib.automatic_landmarks)
+    np.testing.assert_allclose(whole.deltas, both.deltas, atol=1e-9)
+    assert whole.landmark_names == fit.landmark_names
+    with pytest.raises(ExCloneError, match="landmarks do not fit"):
+        fit_faces(lib.mesh, target, source_landmarks=(["nose_tip"], np.array([len(lib.mesh.vertices)])))

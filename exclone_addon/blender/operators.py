@@ -67,7 +67,7 @@ def _poll_source(cls, context):
 @dataclass
 class Plan:
     """An engine operator's checked inputs, and what to do with the engine's result."""
-    inputs: tuple                 # run_engine's (source, target mesh, landmarks, settings)
+    inputs: tuple                 # run_engine's (source, target mesh, landmarks, settings, transfer)
     target: object
     finish: object                # callable(workflow.Run) -> the operator's return set
 
@@ -324,7 +324,7 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
                                                    if run.cached else f"{seconds:.1f} s"))
             return {'FINISHED'}
 
-        return Plan((source, target_mesh, landmarks, self.settings(context)), target, finish)
+        return Plan((source, target_mesh, landmarks, self.settings(context), False), target, finish)
 
 
 class EXCLONE_OT_remove_preview(bpy.types.Operator):

@@ -12,7 +12,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from ..core.cloning import CloneSettings, clone_expressions
+from ..core.cloning import CloneSettings, fit_faces, transfer_expressions
 from ..core.errors import Cancelled, ExCloneError
 from ..core.library import BUNDLED_LIBRARY, load_library
 from ..core.mesh import PolyMesh, vertex_parts
@@ -35,7 +35,8 @@ class Source:
 
 @dataclass
 class Run:
-    result: object                # core.cloning.CloneResult for every source expression
+    result: object                # core.cloning.CloneResult for every source expression, or
+                                  # the FaceFit alone (Register)
     landmark_kind: str            # "automatic" (soft) or "edited" (hard constraints)
     cached: bool
 
@@ -152,30 +153,53 @@ def _digest(*parts):
     return h.hexdigest()
 
 
-_cache = OrderedDict()
+_fits = OrderedDict()       # fit key -> core.cloning.FaceFit
+_results = OrderedDict()    # fit key + expressions -> core.cloning.CloneResult
 
 
 def clear_cache():
-    _cache.clear()
+    _fits.clear()
+    _results.clear()
 
 
-def run_engine(source, target_mesh, landmarks, clone_settings, progress=None):
-    """The engine's result for every source expression, from the cache when the meshes, the
-    expressions, the landmarks and the settings are unchanged."""
+def _remember(cache, key, value):
+    cache[key] = value
+    while len(cache) > CACHE_SIZE:
+        cache.popitem(last=False)
+
+
+def run_engine(source, target_mesh, landmarks, clone_settings, transfer=True, progress=None):
+    """The engine's fit of source onto target (transfer=False: Register), or its result for
+    every source expression (transfer=True: Clone). The fit is reused while the meshes, the
+    landmarks and the settings are unchanged, so Clone after Register only transfers; Run.cached
+    says whether it was."""
     key = _digest(source.mesh.vertices, source.mesh.loop_totals, source.mesh.loop_vertices,
-                  source.deltas, source.names, target_mesh.vertices, target_mesh.loop_totals,
-                  target_mesh.loop_vertices, landmarks, clone_settings)
+                  target_mesh.vertices, target_mesh.loop_totals, target_mesh.loop_vertices,
+                  landmarks, clone_settings)
     kind = "automatic" if landmarks is None else "edited"
-    if key in _cache:
-        _cache.move_to_end(key)
-        return Run(_cache[key], kind, True)
-    result = clone_expressions(source.mesh, source.deltas, source.names, target_mesh,
-                               landmarks=landmarks, source_landmarks=source.automatic_landmarks,
-                               settings=clone_settings, progress=progress)
-    _cache[key] = result
-    while len(_cache) > CACHE_SIZE:
-        _cache.popitem(last=False)
-    return Run(result, kind, False)
+    cached = key in _fits
+    if cached:
+        _fits.move_to_end(key)
+        fit = _fits[key]
+    else:
+        def fit_progress(fraction, message):
+            if progress:
+                progress(fraction * (0.8 if transfer else 1.0), message)
+
+        fit = fit_faces(source.mesh, target_mesh, landmarks=landmarks,
+                        source_landmarks=source.automatic_landmarks, settings=clone_settings,
+                        progress=fit_progress)
+        _remember(_fits, key, fit)
+    if transfer:
+        result_key = key + _digest(source.deltas, source.names)
+        if result_key not in _results:
+            if progress:
+                progress(0.8, "transfer")
+            _remember(_results, result_key, transfer_expressions(fit, source.deltas, source.names))
+        _results.move_to_end(result_key)
+    if progress:
+        progress(1.0, "done")
+    return Run(_results[result_key] if transfer else fit, kind, cached)
 
 
 def clone_settings(context, preset, formulation):
