@@ -1,0 +1,127 @@
+"""Benchmark of one live-tracking step on 640x480 frames; prints JSON.
+
+    .venv/bin/python scripts/bench_track.py [--frames N] [--out BENCH.json]
+
+The take: skimage's astronaut photograph moved by smooth known translations, rotations and
+scales (as in blender_tests/test_live.py). The avatar: the bundled ICT-FaceKit head with its 57
+ARKit shape keys, as a Blender mesh object (bpy module); the tracker's points are located on it
+by the shipped tracker model, so no registration runs here. Per frame: track (or detect),
+landmarks, shape fit, filters, weights, and the weights written into the object's shape-key
+values. Reported: the median and 95th percentile per stage and of the whole step over the frames
+after calibration; Blender's own evaluation of the shape keys (depsgraph update, done by
+Blender at redraw, not by the step) is timed separately.
+"""
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import bpy
+import cv2
+import numpy as np
+from skimage import data
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from exclone_addon.blender import mesh_io  # noqa: E402
+from exclone_addon.core import live  # noqa: E402
+from exclone_addon.core.library import load_library  # noqa: E402
+
+FACE_CENTRE = (224.0, 135.0)
+CALIBRATION_FRAMES = 30
+
+
+def moved_astronaut(image, k, frames):
+    t = k / frames
+    matrix = cv2.getRotationMatrix2D(FACE_CENTRE, 15 * np.sin(2 * np.pi * t),
+                                     1 + 0.2 * np.sin(2 * np.pi * 1.5 * t + 1))
+    matrix[:, 2] += (320 - FACE_CENTRE[0] + 80 * np.sin(2 * np.pi * t + 0.5),
+                     240 - FACE_CENTRE[1] + 50 * np.sin(4 * np.pi * t))
+    return cv2.warpAffine(image, matrix, (640, 480), flags=cv2.INTER_LINEAR,
+                          borderMode=cv2.BORDER_REPLICATE)
+
+
+def avatar_object(library):
+    mesh = bpy.data.meshes.new("BenchAvatar")
+    mesh.from_pydata(library.mesh.vertices.tolist(), [], [f.tolist() for f in library.mesh.faces()])
+    obj = bpy.data.objects.new("BenchAvatar", mesh)
+    bpy.context.scene.collection.objects.link(obj)
+    mesh_io.write_shape_keys(obj, library.names, library.deltas)
+    return obj
+
+
+def main(argv):
+    parser = argparse.ArgumentParser(prog="bench_track.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--frames", type=int, default=150, help="frames in the take (default 150)")
+    parser.add_argument("--out", help="also write the JSON here")
+    args = parser.parse_args(argv)
+    if args.frames <= CALIBRATION_FRAMES:
+        parser.error(f"--frames must exceed the {CALIBRATION_FRAMES} calibration frames")
+
+    clock = time.perf_counter()
+    library = load_library()
+    rig = live.AvatarRig.from_locations(library.mesh.vertices, library.deltas, library.names,
+                                        live.read_tracker_locations())
+    obj = avatar_object(library)
+    key_blocks = [obj.data.shape_keys.key_blocks[name] for name in rig.names]
+    setup_s = time.perf_counter() - clock
+    photo = cv2.cvtColor(data.astronaut(), cv2.COLOR_RGB2BGR)
+    frames = [moved_astronaut(photo, k, args.frames) for k in range(args.frames)]
+
+    clock = time.perf_counter()
+    session = live.FaceTrackingSession(avatar=rig, calibration_frames=CALIBRATION_FRAMES)
+    session_s = time.perf_counter() - clock
+    rows, evaluate_ms, lost = [], [], 0
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    for k, image in enumerate(frames):
+        start = time.perf_counter()
+        result = session.step(image, k / 30.0)
+        write_start = time.perf_counter()
+        if result.weights is not None:
+            for block, name in zip(key_blocks, rig.names):
+                block.value = result.weights[name]
+        end = time.perf_counter()
+        lost += not result.found
+        if k >= CALIBRATION_FRAMES:
+            stages = {name: result.stage_ms.get(name, 0.0) for name in ("detect", "landmarks", "fit", "weights")}
+            stages["write"] = 1000 * (end - write_start)
+            stages["step"] = 1000 * (end - start)
+            rows.append(stages)
+            update = time.perf_counter()
+            depsgraph.update()
+            evaluate_ms.append(1000 * (time.perf_counter() - update))
+        elif "calibrate" in result.stage_ms:
+            calibrate_ms = result.stage_ms["calibrate"]
+
+    def summary(values):
+        values = np.asarray(values)
+        return {"median_ms": round(float(np.median(values)), 3),
+                "p95_ms": round(float(np.percentile(values, 95)), 3)}
+
+    report = {
+        "benchmark": "bench_track",
+        "frames": args.frames, "measured_frames": len(rows), "frame_size": [640, 480],
+        "frames_without_face": lost,
+        "avatar": {"vertices": len(library.mesh.vertices), "shape_keys": len(rig.names)},
+        "stages": {name: summary([r[name] for r in rows]) for name in rows[0]},
+        "target_ms": 16.0,
+        "one_off_s": {"avatar_setup": round(setup_s, 3), "session_start": round(session_s, 3),
+                      "calibration": round(calibrate_ms / 1000, 3)},
+        "blender_evaluation_ms": summary(evaluate_ms),
+        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
+                    "numpy": np.__version__, "opencv": cv2.__version__,
+                    "blender": bpy.app.version_string,
+                    "blas_threads": {name: os.environ.get(name) for name in
+                                     ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}},
+    }
+    text = json.dumps(report, indent=1)
+    print(text)
+    if args.out:
+        Path(args.out).write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
