@@ -14,7 +14,6 @@ import cv2
 import numpy as np
 import pytest
 from bpy_extras import anim_utils
-from mathutils import Quaternion
 from skimage import data
 
 from exclone_addon.blender import live, live_panel, mesh_io
@@ -143,7 +142,7 @@ def test_video_take_keys_every_shape_key_at_the_videos_time(ict, video, capfd):
                                              record=True) == {'FINISHED'}
     message = reports(capfd)[-1]
     assert re.match(r"Take on 'avatar': 44 frames from video actor\.avi \(44 frames, 20 fps\), "
-                    r"44 with a face, keyed at frames 28-57 \(end of video", message), message
+                    r"44 with a face, keyed at frames 28-57 \(the source ended", message), message
     # The first second calibrates the neutral face; from its last frame on every frame is keyed
     # at frame = 5 + round(t * 24 fps), t = k / 20 s.
     expected = [5 + round(k / VIDEO_FPS * 24) for k in range(VIDEO_FPS - 1, 44)]
@@ -216,7 +215,7 @@ def test_no_face_holds_the_pose_and_says_so_and_the_preview_shows_the_landmarks(
             image_pixels.append((np.array(image.pixels[:]), green_pixels(image)))
     finally:
         take.close()
-    assert len(statuses) == 40 and take.end_reason.startswith("end of 40 images")
+    assert len(statuses) == 40 and take.end_reason == "the source ended"
     assert statuses[29] == "tracking"
     for k in range(30, 34):                         # the grey wall
         assert statuses[k] == "no face in view: holding the last pose"
@@ -230,7 +229,7 @@ def test_no_face_holds_the_pose_and_says_so_and_the_preview_shows_the_landmarks(
         frames = [1 + round(k / FOLDER_FPS * 24) for k in range(29, 34)]
         assert len({held[f] for f in frames}) == 1
     # the preview: the frame with the landmarks in LANDMARK_COLOUR, changing with the frames
-    for pixels, green in image_pixels[:30] + image_pixels[34:]:
+    for _, green in image_pixels[:30] + image_pixels[34:]:
         assert green > 300                          # 468 points, 2x2 dots, some overlapping
     assert not np.array_equal(image_pixels[0][0], image_pixels[1][0])
     assert take.frames_with_face == 36
@@ -432,6 +431,8 @@ def test_calibrate_camera_from_chessboards_is_used_by_later_takes(ict, tmp_path,
     with pytest.raises(RuntimeError, match=r"a 9x6 chessboard was found in 0 of the images; at "
                                            r"least \d+ views are needed"):
         bpy.ops.exclone.calibrate_camera(directory=str(too_few))
+    with pytest.raises(RuntimeError, match="no camera at index 63"):
+        bpy.ops.exclone.calibrate_camera(camera_frames=5, camera_index=63)
     assert not webcam.calibrated and webcam.fx == 0.0
 
     boards = write_folder(tmp_path / "boards", chessboard_views(10))

@@ -182,19 +182,20 @@ class Take:
     stop requested, max_frames reached), with the reason in end_reason."""
 
     def __init__(self, scene, avatar, names, source, session, record=False, head=None,
-                 max_frames=0, preview=True):
+                 max_frames=0):
         self.scene, self.avatar, self.names = scene, avatar, list(names)
+        self.avatar_name = avatar.name      # for the report, even if the avatar goes away
         self.source, self.session, self.record, self.head = source, session, record, head
-        self.max_frames, self.preview = max_frames, preview
+        self.max_frames = max_frames
         self.start_frame = scene.frame_current
         self.frames_read = self.frames_with_face = 0
-        self.keyed_frames = {}        # timestamp -> scene frame of every keyed frame
+        # timestamp -> scene frame of the frames keyed from a tracked face (Refine rewrites them)
+        self.tracked_frames = {}
         self.time_zero = None         # a camera's take starts at its first keyed frame
         self.status = f"starting: {source.description}"
         self.end_reason = None
         self.camera_lost = False
         self.stop_requested = False
-        self.last_result = None
 
     @property
     def fps(self):
@@ -223,18 +224,16 @@ class Take:
             self.camera_lost = True
             return False
         if frame is None:
-            self.end_reason = f"end of {self.source.description}"
+            self.end_reason = "the source ended"
             return False
         result = self.session.step(frame.image, frame.timestamp)
         self.frames_read += 1
         self.frames_with_face += bool(result.found)
         self.status = result.status
-        self.last_result = result
         # Without a face the session repeats the last pose: it is held (and keyed) as it was.
         if result.weights is not None:
             self._write(result, frame.timestamp)
-        if self.preview:
-            update_preview(frame.image, result.landmarks if result.found else None)
+        update_preview(frame.image, result.landmarks if result.found else None)
         return True
 
     def _write(self, result, timestamp):
@@ -250,7 +249,7 @@ class Take:
             if frame is not None:
                 self.head.keyframe(frame)
         if frame is not None and result.found:
-            self.keyed_frames[round(float(timestamp), 6)] = frame
+            self.tracked_frames[round(float(timestamp), 6)] = frame
 
     def close(self):
         self.source.close()
@@ -259,14 +258,14 @@ class Take:
         text = f"{self.frames_read} frames from {self.source.description}, " \
                f"{self.frames_with_face} with a face"
         if self.record:
-            frames = sorted(self.keyed_frames.values())
+            frames = sorted(self.tracked_frames.values())
             text += f", keyed at frames {frames[0]}-{frames[-1]}" if frames else ", nothing keyed"
         return text
 
 
 def take_report(take):
     """(report type, one line) for a finished take."""
-    text = f"Take on '{take.avatar.name}': {take.summary()}"
+    text = f"Take on '{take.avatar_name}': {take.summary()}"
     if take.camera_lost:
         return {'WARNING'}, f"{take.end_reason}; {text} (what was recorded is kept)"
     return {'INFO'}, f"{text} ({take.end_reason}; last status: {take.status})"
@@ -274,7 +273,7 @@ def take_report(take):
 
 def start_take(context, *, source_type, camera_index=-1, filepath="", record=False, key_set='ALL',
                head_kind='NONE', armature="", bone="", max_frames=0, use_calibration=True,
-               preview=True, progress=None):
+               progress=None):
     """Checks the avatar and the head target, prepares the avatar (cached), then opens the
     source: a Take ready to step. Raises ExCloneError with nothing changed."""
     avatar = checked_avatar(context.active_object)
@@ -295,7 +294,7 @@ def start_take(context, *, source_type, camera_index=-1, filepath="", record=Fal
         context.view_layer.update()         # world matrices of objects moved by scripts
     head = HeadTarget(*holder) if holder is not None else None
     return Take(context.scene, avatar, rig.names, source, session, record=record, head=head,
-                max_frames=max_frames, preview=preview)
+                max_frames=max_frames)
 
 
 # -- the preview image -----------------------------------------------------------------------------
@@ -452,9 +451,9 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
 
     def modal(self, context, event):
         take = self._take
-        if event.type == 'ESC':
+        if event.type == 'ESC' and event.value == 'PRESS':
             take.stop_requested = True
-        elif event.type != 'TIMER' or event.timer is not self._timer:
+        elif event.type != 'TIMER':     # the view stays usable while the take runs
             return {'PASS_THROUGH'}
         try:
             going = take.step()
@@ -483,7 +482,7 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
 
     def _finish(self, take):
         global last_take
-        if take.record and take.keyed_frames:
+        if take.record and take.tracked_frames:
             last_take = take
         self.report(*take_report(take))
         return {'FINISHED'}
@@ -559,7 +558,7 @@ class EXCLONE_OT_refine_take(bpy.types.Operator):
         except ExCloneError as exc:
             self.report({'ERROR'}, str(exc))
             return {'CANCELLED'}
-        frames = [take.keyed_frames.get(round(float(t), 6)) for t in timestamps]
+        frames = [take.tracked_frames.get(round(float(t), 6)) for t in timestamps]
         rows = [i for i, frame in enumerate(frames) if frame is not None]
         key = take.avatar.data.shape_keys
         curves = shape_key_curves(key)
