@@ -12,6 +12,7 @@ from pathlib import Path
 
 import bpy
 import numpy as np
+from scipy.spatial.distance import pdist
 import pytest
 
 import exclone_addon
@@ -433,6 +434,12 @@ def test_rotated_scaled_quad_target_with_keys_and_an_eye(head):
     eye_motion = np.linalg.norm(cloned["jawOpen"][eye], axis=1).max()
     jaw_motion = np.linalg.norm(cloned["jawOpen"], axis=1).max()
     print(f"jawOpen moves the eye part {eye_motion / jaw_motion:.3f} x the most moved vertex")
+    # the eyeball follows as a rigid body: it keeps its shape in every key
+    rest = composite.vertices[eye]
+    size = np.ptp(rest, axis=0).max()
+    for name in ("jawOpen", "eyeBlink_L", "mouthSmile_L"):
+        assert np.allclose(pdist(rest + cloned[name][eye]), pdist(rest), atol=1e-4 * size), name
+    assert np.linalg.norm(cloned["eyeBlink_L"][eye], axis=1).max() > 0   # and it does follow
 
     still = add_object("still", composite)
     obj.select_set(False)

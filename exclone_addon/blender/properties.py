@@ -11,8 +11,8 @@ FORMULATION_ITEMS = [
     ("augmented", "4th Vertex", "Sumner's formulation with a fourth vertex per triangle: "
                                 "about 3x slower registration")]
 PARTS_ITEMS = [
-    ("FOLLOW", "Follow", "Separate parts (eyes, teeth) without landmarks follow the nearest "
-                         "face vertex"),
+    ("FOLLOW", "Follow Rigidly", "Separate parts (eyes, teeth) without landmarks move as rigid "
+                                 "bodies with the face vertices around them"),
     ("STILL", "Keep Still", "Only the parts that carry landmarks get expressions; the other "
                             "parts keep their shape in every new shape key")]
 

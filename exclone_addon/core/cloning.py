@@ -4,6 +4,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from . import deformation
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
@@ -299,9 +300,33 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
 
 
 def _follow_degenerate(result, vertices, all_tris, used_tris):
-    """Vertices only on degenerate (skipped) triangles move with their nearest solved vertex."""
+    """Vertices the transfer did not solve follow the solved ones next to them.
+
+    In a solved part (only on degenerate, skipped triangles) a vertex copies its nearest solved
+    vertex. A separate part without landmarks (an eyeball, teeth) moves as a rigid body: the
+    rotation and translation that best carry the solved vertices nearest to it (its anchors),
+    so it keeps its shape (teeth follow the jaw, eyes the lids around them).
+    """
     solved = np.unique(used_tris)
     orphans = np.setdiff1d(np.unique(all_tris), solved)
-    if len(orphans):
-        _, nearest = cKDTree(vertices[solved]).query(vertices[orphans])
-        result[:, orphans] = result[:, solved[nearest]]
+    if not len(orphans):
+        return
+    _, nearest = cKDTree(vertices[solved]).query(vertices[orphans])
+    anchors = solved[nearest]
+    parts = vertex_parts(len(vertices), all_tris)
+    in_solved_part = np.isin(parts[orphans], parts[solved])
+    result[:, orphans[in_solved_part]] = result[:, anchors[in_solved_part]]
+    for part in np.unique(parts[orphans[~in_solved_part]]):
+        mine = parts[orphans] == part
+        members, ref = orphans[mine], np.unique(anchors[mine])
+        if len(ref) < 3:                                  # too few anchors to fix a rotation
+            result[:, members] = result[:, ref].mean(axis=1, keepdims=True)
+            continue
+        rest = vertices[ref]
+        centre = rest.mean(axis=0)
+        for e in range(len(result)):
+            moved = rest + result[e, ref]
+            moved_centre = moved.mean(axis=0)
+            rotation, _ = Rotation.align_vectors(moved - moved_centre, rest - centre)
+            result[e, members] = (rotation.apply(vertices[members] - centre) + moved_centre
+                                  - vertices[members])
