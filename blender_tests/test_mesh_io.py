@@ -44,6 +44,12 @@ def test_shape_keys_round_trip_through_a_saved_blend(head, tmp_path):
     added, replaced, skipped = mesh_io.write_shape_keys(obj, names, deltas)
     assert (added, replaced, skipped) == (names, [], [])
     assert [kb.name for kb in obj.data.shape_keys.key_blocks] == ["Basis"] + names
+    # new keys start off: the head still shows its neutral face
+    assert [kb.value for kb in obj.data.shape_keys.key_blocks[1:]] == [0.0] * len(names)
+    assert np.array_equal(mesh_io.mesh_from_object(obj, evaluated=True,
+                                                   depsgraph=bpy.context.evaluated_depsgraph_get()
+                                                   ).vertices.astype(np.float32),
+                          head.vertices.astype(np.float32))
 
     path = tmp_path / "head.blend"
     bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True)

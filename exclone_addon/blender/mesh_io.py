@@ -92,6 +92,7 @@ def write_shape_keys(obj, names, deltas, *, replace_existing=False):
             continue
         if block is None:
             block = obj.shape_key_add(name=name, from_mix=False)
+            block.value = 0.0    # bpy 5 adds keys at 1.0: every new expression would show at once
             added.append(name)
         else:
             block.relative_key = reference
