@@ -115,8 +115,11 @@ def _file_digest(path):
 
 def model_versions():
     import cv2
+    import tomllib
     models = face_models.MODELS_DIR
+    manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
     return {
+        "exclone": manifest["version"],
         "detector": {"file": face_models.DETECTOR_MODEL, "from": "mediapipe 0.10.21",
                      "sha256_16": _file_digest(models / face_models.DETECTOR_MODEL)},
         "landmarks": {"file": face_models.LANDMARK_MODEL, "from": "mediapipe 0.10.21",
