@@ -6,7 +6,6 @@ core.mesh.read_obj (file coordinates and vertex order kept), .blend files by app
 FBX/glTF with Blender's importers into an empty scene. Every output is a new file.
 """
 import argparse
-import contextlib
 import json
 import math
 import os
@@ -24,6 +23,7 @@ import bpy
 import numpy as np
 
 from .blender import mesh_io
+from .cli import run_main
 from .blender.operators import summary
 from .core import library
 from .core.cloning import CloneSettings, clone_expressions
@@ -641,45 +641,13 @@ def run_batch(args):
     return summary
 
 
-@contextlib.contextmanager
-def _stderr_to_stdout():
-    """Send everything written to stderr meanwhile (Blender's own messages, e.g. EGL warnings
-    while rendering) to stdout, so that stderr carries only our one-line error."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = os.dup(2)
-    os.dup2(1, 2)
-    try:
-        yield
-    finally:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 def main(argv):
     """Run the CLI on argv (the arguments after the script); returns the exit code."""
-    try:
-        with _stderr_to_stdout():
-            args = parse_args(argv)
-            if args.batch:
-                run_batch(args)
-            else:
-                run(args)
-        return 0
-    except ExCloneError as exc:
-        message = str(exc)
-    except NotImplementedError as exc:
-        message = f"the cloning engine is not available yet ({exc})"
-    except OSError as exc:
-        message = str(exc)
-    except KeyboardInterrupt:
-        message = "interrupted"
-    except Exception as exc:  # one line for the user; EXCLONE_DEBUG=1 shows the traceback
-        if os.environ.get("EXCLONE_DEBUG"):
-            raise
-        message = (f"internal error ({type(exc).__name__}: {exc}); "
-                   "run with EXCLONE_DEBUG=1 for the traceback")
-    print("batch_clone: error: " + " ".join(message.split()), file=sys.stderr, flush=True)
-    return 1
+    def work():
+        args = parse_args(argv)
+        if args.batch:
+            run_batch(args)
+        else:
+            run(args)
+
+    return run_main("batch_clone", work)

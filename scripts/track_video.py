@@ -18,7 +18,6 @@ from the .blend (or .fbx/.glb, or a folder with neutral.obj + one OBJ per shape)
 written to it. Exit code 0 on success; otherwise 1 and one line on stderr.
 """
 import argparse
-import contextlib
 import hashlib
 import json
 import os
@@ -30,6 +29,7 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
+from exclone_addon.cli import run_main  # noqa: E402
 from exclone_addon.core import capture, face_models, live  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
 from exclone_addon.core.tracking import Camera  # noqa: E402
@@ -231,41 +231,8 @@ def _camera_dict(camera):
     return {"fx": camera.fx, "fy": camera.fy, "cx": camera.cx, "cy": camera.cy}
 
 
-@contextlib.contextmanager
-def _stderr_to_stdout():
-    """OpenCV's video backends and Blender log to stderr (e.g. a missing camera): send it to
-    stdout meanwhile, so that stderr carries only our one-line error."""
-    sys.stdout.flush()
-    sys.stderr.flush()
-    saved = os.dup(2)
-    os.dup2(1, 2)
-    try:
-        yield
-    finally:
-        sys.stdout.flush()
-        sys.stderr.flush()
-        os.dup2(saved, 2)
-        os.close(saved)
-
-
 def main(argv):
-    try:
-        with _stderr_to_stdout():
-            run(parse_args(argv))
-        return 0
-    except ExCloneError as exc:
-        message = str(exc)
-    except OSError as exc:
-        message = str(exc)
-    except KeyboardInterrupt:
-        message = "interrupted"
-    except Exception as exc:  # one line for the user; EXCLONE_DEBUG=1 shows the traceback
-        if os.environ.get("EXCLONE_DEBUG"):
-            raise
-        message = (f"internal error ({type(exc).__name__}: {exc}); "
-                   "run with EXCLONE_DEBUG=1 for the traceback")
-    print(f"{PROG}: error: " + " ".join(message.split()), file=sys.stderr, flush=True)
-    return 1
+    return run_main(PROG, lambda: run(parse_args(argv)))
 
 
 if __name__ == "__main__":
