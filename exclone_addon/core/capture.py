@@ -52,11 +52,41 @@ class FrameSource:
             yield frame
 
 
-def _capture_size(capture):
-    return (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+class _CaptureSource(FrameSource):
+    """An OpenCV VideoCapture whose first frame was read on opening (so a source that opens but
+    delivers nothing fails before the take starts)."""
+
+    def _start(self, capture, first_image):
+        self._capture, self._pending, self._count = capture, first_image, 0
+        self.frame_size = (first_image.shape[1], first_image.shape[0])
+
+    def _timestamp(self):
+        raise NotImplementedError
+
+    def _ended(self):
+        """What read() gives when the capture delivers no more frames."""
+        raise NotImplementedError
+
+    def read(self):
+        if self._capture is None:
+            return None
+        if self._pending is not None:
+            image, self._pending = self._pending, None
+        else:
+            ok, image = self._capture.read()
+            if not ok or image is None:
+                return self._ended()
+        frame = Frame(_as_bgr(image), self._timestamp(), self._count)
+        self._count += 1
+        return frame
+
+    def close(self):
+        if self._capture is not None:
+            self._capture.release()
+            self._capture = None
 
 
-class CameraSource(FrameSource):
+class CameraSource(_CaptureSource):
     is_live = True
 
     def __init__(self, index):
@@ -69,70 +99,40 @@ class CameraSource(FrameSource):
         if not ok or image is None:
             capture.release()
             raise ExCloneError(f"camera {index} opened but delivers no frames")
-        self._capture = capture
-        self._pending = image
+        self._start(capture, image)
         self.index = index
         self.description = f"camera {index}"
         fps = capture.get(cv2.CAP_PROP_FPS)
         self.frame_rate = float(fps) if fps and fps > 0 else None
-        self.frame_size = (image.shape[1], image.shape[0])
-        self._start = time.monotonic()
-        self._count = 0
+        self._clock_start = time.monotonic()
 
-    def read(self):
-        if self._capture is None:
-            return None
-        if self._pending is not None:
-            image, self._pending = self._pending, None
-        else:
-            ok, image = self._capture.read()
-            if not ok or image is None:
-                raise CameraLost(f"camera {self.index} stopped delivering frames")
-        frame = Frame(_as_bgr(image), time.monotonic() - self._start, self._count)
-        self._count += 1
-        return frame
+    def _timestamp(self):
+        return time.monotonic() - self._clock_start
 
-    def close(self):
-        if self._capture is not None:
-            self._capture.release()
-            self._capture = None
+    def _ended(self):
+        raise CameraLost(f"camera {self.index} stopped delivering frames")
 
 
-class VideoSource(FrameSource):
+class VideoSource(_CaptureSource):
     def __init__(self, path):
         capture = cv2.VideoCapture(str(path))
         ok, image = capture.read() if capture.isOpened() else (False, None)
         if not ok or image is None:
             capture.release()
             raise ExCloneError(f"{path} is not a readable video")
-        self._capture = capture
-        self._pending = image
+        self._start(capture, image)
         fps = capture.get(cv2.CAP_PROP_FPS)
         self.frame_rate = float(fps) if fps and fps > 0 else FOLDER_FRAME_RATE
         self.frame_count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
-        self.frame_size = (image.shape[1], image.shape[0])
         self.description = (f"video {Path(path).name} ({self.frame_count} frames, "
                             f"{self.frame_rate:g} fps)")
-        self._count = 0
 
-    def read(self):
-        if self._capture is None:
-            return None
-        if self._pending is not None:
-            image, self._pending = self._pending, None
-        else:
-            ok, image = self._capture.read()
-            if not ok or image is None:
-                return None
-        # Timestamps from the frame's place: container timestamps are often missing or zero.
-        frame = Frame(_as_bgr(image), self._count / self.frame_rate, self._count)
-        self._count += 1
-        return frame
+    def _timestamp(self):
+        # from the frame's place: container timestamps are often missing or zero
+        return self._count / self.frame_rate
 
-    def close(self):
-        if self._capture is not None:
-            self._capture.release()
-            self._capture = None
+    def _ended(self):
+        return None
 
 
 class ImageSource(FrameSource):
