@@ -10,7 +10,6 @@ The preview is an image datablock, "ExClone Camera" (the frame downscaled, the l
 in LANDMARK_COLOUR), drawn in the viewport's corner by a gpu draw handler that exists only while
 a take runs in a window.
 """
-import hashlib
 from collections import OrderedDict
 from pathlib import Path
 
@@ -73,11 +72,7 @@ def avatar_rig(obj, key_set, progress=None):
     avatar is a registration (seconds), redone only when the mesh or its keys change."""
     names, deltas = avatar_keys(obj, key_set)
     mesh = workflow.basis_mesh(obj, "avatar")
-    digest = hashlib.sha1()
-    for part in (mesh.vertices, mesh.loop_totals, mesh.loop_vertices, deltas):
-        digest.update(np.ascontiguousarray(part).tobytes())
-    digest.update(repr(names).encode())
-    key = digest.hexdigest()
+    key = workflow.digest(mesh.vertices, mesh.loop_totals, mesh.loop_vertices, deltas, names)
     if key in _rigs:
         _rigs.move_to_end(key)
         return _rigs[key]
@@ -87,9 +82,7 @@ def avatar_rig(obj, key_set, progress=None):
     except ExCloneError as exc:
         raise ExCloneError(f"'{obj.name}': the tracker's face does not register onto this "
                            f"avatar ({exc})") from exc
-    _rigs[key] = rig
-    while len(_rigs) > RIG_CACHE_SIZE:
-        _rigs.popitem(last=False)
+    workflow.remember(_rigs, key, rig, RIG_CACHE_SIZE)
     return rig
 
 

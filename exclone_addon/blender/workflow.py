@@ -145,7 +145,8 @@ def landmark_pairs(source, target_obj, target_mesh):
     return {"source": [src[n] for n in common], "target": [tgt[n] for n in common]}
 
 
-def _digest(*parts):
+def digest(*parts):
+    """A key for a cache: arrays by their bytes, anything else by its repr."""
     h = hashlib.sha1()
     for part in parts:
         h.update(np.ascontiguousarray(part).tobytes() if isinstance(part, np.ndarray)
@@ -162,9 +163,10 @@ def clear_cache():
     _results.clear()
 
 
-def _remember(cache, key, value):
+def remember(cache, key, value, size=CACHE_SIZE):
+    """Put value in an OrderedDict cache, dropping the oldest entries beyond `size`."""
     cache[key] = value
-    while len(cache) > CACHE_SIZE:
+    while len(cache) > size:
         cache.popitem(last=False)
 
 
@@ -173,7 +175,7 @@ def run_engine(source, target_mesh, landmarks, clone_settings, transfer=True, pr
     every source expression (transfer=True: Clone). The fit is reused while the meshes, the
     landmarks and the settings are unchanged, so Clone after Register only transfers; Run.cached
     says whether it was."""
-    key = _digest(source.mesh.vertices, source.mesh.loop_totals, source.mesh.loop_vertices,
+    key = digest(source.mesh.vertices, source.mesh.loop_totals, source.mesh.loop_vertices,
                   target_mesh.vertices, target_mesh.loop_totals, target_mesh.loop_vertices,
                   landmarks, clone_settings)
     kind = "automatic" if landmarks is None else "edited"
@@ -189,13 +191,13 @@ def run_engine(source, target_mesh, landmarks, clone_settings, transfer=True, pr
         fit = fit_faces(source.mesh, target_mesh, landmarks=landmarks,
                         source_landmarks=source.automatic_landmarks, settings=clone_settings,
                         progress=fit_progress)
-        _remember(_fits, key, fit)
+        remember(_fits, key, fit)
     if transfer:
-        result_key = key + _digest(source.deltas, source.names)
+        result_key = key + digest(source.deltas, source.names)
         if result_key not in _results:
             if progress:
                 progress(0.8, "transfer")
-            _remember(_results, result_key, transfer_expressions(fit, source.deltas, source.names))
+            remember(_results, result_key, transfer_expressions(fit, source.deltas, source.names))
         _results.move_to_end(result_key)
     if progress:
         progress(1.0, "done")
@@ -269,4 +271,4 @@ class EngineJob:
 def mesh_digest(obj):
     """Identifies an object's basis mesh, to notice edits made while a job runs."""
     mesh = basis_mesh(obj, "target")
-    return _digest(mesh.vertices, mesh.loop_totals, mesh.loop_vertices)
+    return digest(mesh.vertices, mesh.loop_totals, mesh.loop_vertices)
