@@ -43,6 +43,8 @@ MIN_ROI_SIZE = 24.0
 # times larger. 0.05 instead of tracking's 1e-3 takes the fit from 4 to about 3 iterations with no
 # change in test_live's figures at 3 decimals.
 FIT_TOLERANCE_PX = 0.05
+# The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs).
+STAGES = ("detect", "landmarks", "fit", "weights")
 
 
 # ---------------------------------------------------------------------------- tracker's model
@@ -286,7 +288,7 @@ class FaceTrackingSession:
         """One frame (8-bit BGR) at `timestamp` seconds -> FrameResult."""
         image = face_models._check_image(image_bgr)
         self._use_image_size(image.shape[1], image.shape[0])
-        stage_ms = {"detect": 0.0, "landmarks": 0.0, "fit": 0.0, "weights": 0.0}
+        stage_ms = dict.fromkeys(STAGES, 0.0)
         points, detected = self._find_face(image, stage_ms)
         if points is None:
             return self._lost(stage_ms)
@@ -308,7 +310,7 @@ class FaceTrackingSession:
                 raise ExCloneError("step_landmarks needs a camera or the image size")
             image_size = (2 * self.camera.cx, 2 * self.camera.cy)
         self._use_image_size(*image_size)
-        stage_ms = {"detect": 0.0, "landmarks": 0.0, "fit": 0.0, "weights": 0.0}
+        stage_ms = dict.fromkeys(STAGES, 0.0)
         return self._track(points, timestamp, stage_ms, restart=self._previous_fit is None)
 
     def _lost(self, stage_ms):
