@@ -266,7 +266,7 @@ def transfer_expressions(fit, source_deltas, names):
     if fit._transfer is None:
         fit._transfer = Transfer(tgt_v, tgt_region, fit.weights, fit.formulation)
     result = fit._transfer(wanted, moves_at[:, anchors], anchors)
-    _follow_degenerate(result, tgt_v, fit.target.triangles(), tgt_region)
+    _follow_unsolved(result, tgt_v, fit.target.triangles(), tgt_region)
     if not np.all(np.isfinite(result)):
         raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
@@ -299,7 +299,7 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
     return result
 
 
-def _follow_degenerate(result, vertices, all_tris, used_tris):
+def _follow_unsolved(result, vertices, all_tris, used_tris):
     """Vertices the transfer did not solve follow the solved ones next to them.
 
     In a solved part (only on degenerate, skipped triangles) a vertex copies its nearest solved
