@@ -3,45 +3,55 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 
-def closest_points_on_triangles(points, a, b, c):
-    """Closest point on triangle (a, b, c) to each point, all (m, 3); returns (closest, bary (m, 3)).
+def _dot(x, y):
+    """Row-wise dot product of component-first arrays (3, ...)."""
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
-    Ericson, Real-Time Collision Detection, 5.1.5, vectorised over the rows.
+
+def _closest_weights(ap, ab, ac, ab_ab, ab_ac, ac_ac):
+    """Weights (v, w) of the closest point a + v ab + w ac on triangles (a, b, c) to points p.
+
+    Ericson, Real-Time Collision Detection, 5.1.5, vectorised: ap = p - a, ab, ac component
+    first (3, ...); ab_ab, ab_ac, ac_ac the edges' dot products, so two dot products per pair.
     """
-    ab, ac, ap = b - a, c - a, points - a
-    d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
-    bp = points - b
-    d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
-    cp = points - c
-    d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    d3, d4 = d1 - ab_ab, d2 - ab_ac          # the same against b (bp = ap - ab)
+    d5, d6 = d1 - ab_ac, d2 - ac_ac          # and against c
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
-
     with np.errstate(divide="ignore", invalid="ignore"):
         denom = va + vb + vc
-        v_in = vb / denom
-        w_in = vc / denom
-        t_ab = d1 / (d1 - d3)
-        t_ac = d2 / (d2 - d6)
+        v = vb / denom
+        w = vc / denom
+        t_ab = d1 / ab_ab
+        t_ac = d2 / ac_ac
         t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-    bary = np.stack([1 - v_in - w_in, v_in, w_in], axis=1)
     # Ericson's region tests in reverse priority (A, B, AB, C, AC, BC win in that order), so
     # that the last assignment is the one his early-outs would return.
-    regions = [
-        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), np.stack([0 * t_bc, 1 - t_bc, t_bc], 1)),
-        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), np.stack([1 - t_ac, 0 * t_ac, t_ac], 1)),
-        ((d6 >= 0) & (d5 <= d6), np.tile([0.0, 0.0, 1.0], (len(points), 1))),
-        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), np.stack([1 - t_ab, t_ab, 0 * t_ab], 1)),
-        ((d3 >= 0) & (d4 <= d3), np.tile([0.0, 1.0, 0.0], (len(points), 1))),
-        ((d1 <= 0) & (d2 <= 0), np.tile([1.0, 0.0, 0.0], (len(points), 1))),
-    ]
-    for mask, value in regions:
-        bary[mask] = value[mask]
-    bad = ~np.all(np.isfinite(bary), axis=1)          # degenerate triangle: take corner a
-    bary[bad] = [1.0, 0.0, 0.0]
-    closest = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
-    return closest, bary
+    for mask, region_v, region_w in (
+        ((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0), 1 - t_bc, t_bc),
+        ((vb <= 0) & (d2 >= 0) & (d6 <= 0), 0.0, t_ac),
+        ((d6 >= 0) & (d5 <= d6), 0.0, 1.0),
+        ((vc <= 0) & (d1 >= 0) & (d3 <= 0), t_ab, 0.0),
+        ((d3 >= 0) & (d4 <= d3), 1.0, 0.0),
+        ((d1 <= 0) & (d2 <= 0), 0.0, 0.0),
+    ):
+        np.copyto(v, region_v, where=mask)
+        np.copyto(w, region_w, where=mask)
+    bad = ~(np.isfinite(v) & np.isfinite(w))       # degenerate triangle: take corner a
+    v[bad] = 0.0
+    w[bad] = 0.0
+    return v, w
+
+
+def closest_points_on_triangles(points, a, b, c):
+    """Closest point on triangle (a, b, c) to each point, all (m, 3); returns (closest, bary (m, 3))."""
+    a, ab, ac = (np.asarray(x, dtype=np.float64).T for x in (a, b - a, c - a))
+    ap = np.asarray(points, dtype=np.float64).T - a
+    v, w = _closest_weights(ap, ab, ac, _dot(ab, ab), _dot(ab, ac), _dot(ac, ac))
+    closest = (a + v * ab + w * ac).T
+    return closest, np.stack([1 - v - w, v, w], axis=1)
 
 
 class TriangleSurface:
@@ -55,7 +65,11 @@ class TriangleSurface:
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.triangles = np.asarray(triangles)
         self.k = min(k, len(self.triangles))
-        self.tree = cKDTree(self.vertices[self.triangles].mean(axis=1))
+        a, b, c = (self.vertices[self.triangles[:, i]] for i in range(3))
+        self.tree = cKDTree((a + b + c) / 3)
+        # per triangle, component first: corner a, edges ab and ac, and their dot products
+        self._a, self._ab, self._ac = (np.ascontiguousarray(x.T) for x in (a, b - a, c - a))
+        self._dots = (_dot(self._ab, self._ab), _dot(self._ab, self._ac), _dot(self._ac, self._ac))
 
     def closest(self, points, chunk=20000):
         """Returns (closest points (m,3), triangle ids (m,), distances (m,), barycentric (m,3))."""
@@ -68,15 +82,17 @@ class TriangleSurface:
             return np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros((0, 3))
         # threads only pay off for large queries; small ones lose more to the pool's start-up
         _, cand = self.tree.query(points, k=self.k, workers=-1 if m > 5000 else 1)
-        cand = cand.reshape(m, -1)
-        tri = self.triangles[cand.ravel()]
-        rep = np.repeat(points, cand.shape[1], axis=0)
-        v = self.vertices
-        pts, bary = closest_points_on_triangles(rep, v[tri[:, 0]], v[tri[:, 1]], v[tri[:, 2]])
-        dist = np.linalg.norm(pts - rep, axis=1).reshape(m, -1)
-        best = np.argmin(dist, axis=1)
-        rows = np.arange(m) * cand.shape[1] + best
-        return pts[rows], cand[np.arange(m), best], dist[np.arange(m), best], bary[rows]
+        cand = cand.reshape(m, -1)                                    # (m, k) candidates
+        ap = points.T[:, :, None] - self._a[:, cand]                  # (3, m, k)
+        ab, ac = self._ab[:, cand], self._ac[:, cand]
+        v, w = _closest_weights(ap, ab, ac, *(d[cand] for d in self._dots))
+        offset = ap - v * ab - w * ac                                 # closest point -> point
+        squared = _dot(offset, offset)
+        best = np.argmin(squared, axis=1)
+        rows = np.arange(m)
+        v, w = v[rows, best], w[rows, best]
+        return (points - offset[:, rows, best].T, cand[rows, best], np.sqrt(squared[rows, best]),
+                np.stack([1 - v - w, v, w], axis=1))
 
 
 def interpolate(values, triangles, triangle_ids, bary):
