@@ -103,10 +103,10 @@ def triangle_normals(vertices, triangles, normalize=True):
 
 def vertex_normals(vertices, triangles):
     """Area-weighted vertex normals; vertices on no (non-degenerate) triangle get 0."""
-    fn = triangle_normals(vertices, triangles, normalize=False)
-    n = np.zeros_like(vertices)
-    for k in range(3):
-        np.add.at(n, triangles[:, k], fn)
+    fn = np.repeat(triangle_normals(vertices, triangles, normalize=False), 3, axis=0)
+    corners = triangles.ravel()
+    n = np.stack([np.bincount(corners, fn[:, c], minlength=len(vertices)) for c in range(3)],
+                 axis=1)
     length = np.linalg.norm(n, axis=1, keepdims=True)
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 

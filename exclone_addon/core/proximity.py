@@ -83,8 +83,8 @@ class TriangleSurface:
         # threads only pay off for large queries; small ones lose more to the pool's start-up
         _, cand = self.tree.query(points, k=self.k, workers=-1 if m > 5000 else 1)
         cand = cand.reshape(m, -1)                                    # (m, k) candidates
-        ap = points.T[:, :, None] - self._a[:, cand]                  # (3, m, k)
-        ab, ac = self._ab[:, cand], self._ac[:, cand]
+        ap = np.ascontiguousarray(points.T)[:, :, None] - self._a.take(cand, axis=1)  # (3, m, k)
+        ab, ac = self._ab.take(cand, axis=1), self._ac.take(cand, axis=1)
         v, w = _closest_weights(ap, ab, ac, *(d[cand] for d in self._dots))
         offset = ap - v * ab - w * ac                                 # closest point -> point
         squared = _dot(offset, offset)

@@ -6,6 +6,7 @@ equations per coordinate; w_C ramps up over the steps and closest points are rec
 The normal matrix changes only on its diagonal between steps, so its fill-reducing ordering is
 computed once and reused (the symbolic part of the factorisation).
 """
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -219,50 +220,55 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
     # the landmark-only solve starts a fit from hard landmarks; soft ones start from the surfaces
     steps = ((0.0,) if schedule.landmark_weight is None else ()) + tuple(schedule.closest_weights)
     valid = np.zeros(n, dtype=bool)
-    for k, w_c in enumerate(steps):
-        if progress:
-            progress(k / len(steps), f"registration step {k + 1}/{len(steps)}")
-        data = np.zeros(n_unknowns)
-        rhs = base_rhs.copy()
-        if w_c > 0:
-            normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
-            closest, valid_region, distance = closest_valid_points(
-                x[region], normals[region], source_border[region], surface, target_normals,
-                border, target_border_edges, schedule.max_distance * diag,
-                schedule.border_distance * diag)
-            valid = np.zeros(n, dtype=bool)
-            valid[region[valid_region]] = True
-            targets = np.zeros((n_unknowns, 3))
-            targets[region] = closest
-            data[:n] = w_c * valid
-            rhs += data[:, None] * targets
-            history.append(float(distance.mean()) * unit)
-            pull, pull_rhs = _target_pull(x[:n], source_triangles, source_normal_sign,
-                                          source_border, target_vertices[target_ids],
-                                          target_normals[target_ids], target_share,
-                                          schedule.max_distance * diag, n_unknowns)
-            border_pull, border_rhs = _border_pull(x[:n], source_border_edges,
-                                                   target_vertices[target_border_ids],
-                                                   target_border_share,
-                                                   schedule.border_distance * diag, n_unknowns)
-            pull = pull + border_pull
-            pull_rhs = pull_rhs + border_rhs
-            matrix = (base + sp.diags(data) + w_c * pull).tocsr()
-            rhs += w_c * pull_rhs
-        else:
-            matrix = base
-        released = schedule.landmark_weight is not None
-        fixed = nothing if released else hard
-        if released:
-            pin = np.where(hard, schedule.landmark_weight * max(w_c, 1.0), 0.0)
-            matrix = matrix + sp.diags(pin)
-            rhs = rhs + pin[:, None] * landmark_targets
-        if not fixed.any():
-            x = solver.solve(matrix, rhs)
-            continue
-        free = ~fixed
-        matrix = sp.csr_matrix(matrix)
-        x[free] = solver.solve(matrix[free][:, free], rhs[free] - matrix[free][:, fixed] @ x[fixed])
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        for k, w_c in enumerate(steps):
+            if progress:
+                progress(k / len(steps), f"registration step {k + 1}/{len(steps)}")
+            data = np.zeros(n_unknowns)
+            rhs = base_rhs.copy()
+            if w_c > 0:
+                normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
+                # the target-to-source pull is computed beside the source-to-target closest points
+                # (numpy and the KD-tree release the GIL, so the two use both cores)
+                pull_job = pool.submit(_target_pull, x[:n], source_triangles, normals,
+                                       source_border, target_vertices[target_ids],
+                                       target_normals[target_ids], target_share,
+                                       schedule.max_distance * diag, n_unknowns)
+                closest, valid_region, distance = closest_valid_points(
+                    x[region], normals[region], source_border[region], surface, target_normals,
+                    border, target_border_edges, schedule.max_distance * diag,
+                    schedule.border_distance * diag)
+                valid = np.zeros(n, dtype=bool)
+                valid[region[valid_region]] = True
+                targets = np.zeros((n_unknowns, 3))
+                targets[region] = closest
+                data[:n] = w_c * valid
+                rhs += data[:, None] * targets
+                history.append(float(distance.mean()) * unit)
+                border_pull, border_rhs = _border_pull(x[:n], source_border_edges,
+                                                       target_vertices[target_border_ids],
+                                                       target_border_share,
+                                                       schedule.border_distance * diag, n_unknowns)
+                pull, pull_rhs = pull_job.result()
+                pull = pull + border_pull
+                pull_rhs = pull_rhs + border_rhs
+                matrix = (base + sp.diags(data) + w_c * pull).tocsr()
+                rhs += w_c * pull_rhs
+            else:
+                matrix = base
+            released = schedule.landmark_weight is not None
+            fixed = nothing if released else hard
+            if released:
+                pin = np.where(hard, schedule.landmark_weight * max(w_c, 1.0), 0.0)
+                matrix = matrix + sp.diags(pin)
+                rhs = rhs + pin[:, None] * landmark_targets
+            if not fixed.any():
+                x = solver.solve(matrix, rhs)
+                continue
+            free = ~fixed
+            matrix = sp.csr_matrix(matrix)
+            x[free] = solver.solve(matrix[free][:, free],
+                                   rhs[free] - matrix[free][:, fixed] @ x[fixed])
     # The fit error counts where the surfaces overlap: source parts that reach past the target
     # (a neck below a head's cut) have no closest point to be measured against.
     normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
@@ -285,7 +291,7 @@ def _vertex_areas(vertices, triangles):
     return np.bincount(triangles.ravel(), np.repeat(third, 3), minlength=len(vertices))
 
 
-def _target_pull(source, source_triangles, source_sign, source_border, points, point_normals,
+def _target_pull(source, source_triangles, source_normals, source_border, points, point_normals,
                  weights, max_distance, n_unknowns):
     """Normal-equation terms (B^T W B, B^T W p) pulling the source surface onto target points.
 
@@ -296,8 +302,8 @@ def _target_pull(source, source_triangles, source_sign, source_border, points, p
     surface = TriangleSurface(source, source_triangles)
     _, tri, dist, bary = surface.closest(points)
     corners = source_triangles[tri]
-    normals = source_sign * vertex_normals(source, source_triangles)
-    facing = np.einsum("ij,ij->i", interpolate(normals, source_triangles, tri, bary), point_normals)
+    facing = np.einsum("ij,ij->i", interpolate(source_normals, source_triangles, tri, bary),
+                       point_normals)
     ok = (dist < max_distance) & (facing > 0) & ~source_border[corners].any(axis=1)
     rows = np.repeat(np.flatnonzero(ok), 3)
     b = sp.csr_matrix((bary[ok].ravel(), (rows, corners[ok].ravel())),
