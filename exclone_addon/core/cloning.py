@@ -1,5 +1,6 @@
 """The whole cloning pipeline: landmarks -> registration -> correspondence -> transfer."""
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -137,13 +138,22 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     # 1. Landmarks
     report(0.0, "landmarks")
     if landmarks is None:
-        if source_landmarks is None:
-            src_names, src_ids = automatic_landmarks(src_v, src_tris, face_frame(src_v, src_tris))
-        else:
+        if source_landmarks is not None:
             src_names, src_ids = list(source_landmarks[0]), np.asarray(source_landmarks[1])
             if len(src_names) != len(src_ids) or np.any(src_ids < 0) or np.any(src_ids >= len(src_v)):
                 raise ExCloneError("the source's landmarks do not fit its mesh")
-        tgt_names, tgt_ids = automatic_landmarks(tgt_v, tgt_tris, face_frame(tgt_v, tgt_tris))
+
+        def find(vertices, triangles):
+            return automatic_landmarks(vertices, triangles, face_frame(vertices, triangles))
+
+        # both faces at once when both are looked for (numpy and the KD-tree release the GIL);
+        # the source's error, if any, is the one reported
+        with ThreadPoolExecutor(max_workers=2) as pool:
+            src_job = pool.submit(find, src_v, src_tris) if source_landmarks is None else None
+            tgt_job = pool.submit(find, tgt_v, tgt_tris)
+            if src_job:
+                src_names, src_ids = src_job.result()
+            tgt_names, tgt_ids = tgt_job.result()
         common = [n for n in src_names if n in tgt_names]
         src_lm = np.array([src_ids[src_names.index(n)] for n in common])
         tgt_lm = np.array([tgt_ids[tgt_names.index(n)] for n in common])
