@@ -200,21 +200,8 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
 
     # 3. Correspondence: the vertex map where plausible, triangle pairs elsewhere
     report(0.85, "correspondence")
-    max_distance = settings.max_distance * diag
-    tgt_normals = tgt_sign * vertex_normals(tgt_v, tgt_region)
-    vertex_map = map_vertices(reg.vertices, src_region, tgt_v, tgt_normals, np.unique(tgt_region),
-                              max_distance, src_sign)
-    if settings.correspondence == "vertex":
-        mapped = mapped_triangles(vertex_map, reg.vertices, src_region, tgt_v, tgt_region,
-                                  src_sign, tgt_sign)
-    else:
-        mapped = np.zeros(len(tgt_region), dtype=bool)
-    pairs = triangle_correspondence(reg.vertices, src_region, tgt_v, tgt_region, max_distance,
-                                    src_sign, tgt_sign, wanted=~mapped)
-    pairs = pairs.matrix(len(tgt_region), len(src_region))
-    weights = np.where(mapped, 1.0, np.asarray(pairs.sum(axis=1)).ravel())
-    if not np.any(weights > 0):
-        raise ExCloneError("no triangle of the target corresponds to the source; check the landmarks")
+    vertex_map, mapped, pairs, weights = _correspond(reg.vertices, src_region, tgt_v, tgt_region,
+                                                     src_sign, tgt_sign, diag, settings)
     lap("correspondence")
     quality = {
         "registration_mean_distance": reg.mean_distance,
@@ -231,6 +218,65 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     return FaceFit(len(src_v), target, tgt_region, src_region, rot, scale, aligned, vertex_map,
                    mapped, pairs, weights, settings.formulation, src_lm, tgt_lm, landmark_names,
                    reg.vertices, timings, quality)
+
+
+def _correspond(registered, src_region, tgt_v, tgt_region, src_sign, tgt_sign, diag, settings):
+    """Correspondence of the target region with the registered source region: the vertex map
+    where plausible, triangle pairs elsewhere. Returns (vertex_map, mapped, pairs, weights)."""
+    max_distance = settings.max_distance * diag
+    tgt_normals = tgt_sign * vertex_normals(tgt_v, tgt_region)
+    vertex_map = map_vertices(registered, src_region, tgt_v, tgt_normals, np.unique(tgt_region),
+                              max_distance, src_sign)
+    if settings.correspondence == "vertex":
+        mapped = mapped_triangles(vertex_map, registered, src_region, tgt_v, tgt_region,
+                                  src_sign, tgt_sign)
+    else:
+        mapped = np.zeros(len(tgt_region), dtype=bool)
+    pairs = triangle_correspondence(registered, src_region, tgt_v, tgt_region, max_distance,
+                                    src_sign, tgt_sign, wanted=~mapped)
+    pairs = pairs.matrix(len(tgt_region), len(src_region))
+    weights = np.where(mapped, 1.0, np.asarray(pairs.sum(axis=1)).ravel())
+    if not np.any(weights > 0):
+        raise ExCloneError("no triangle of the target corresponds to the source; check the landmarks")
+    return vertex_map, mapped, pairs, weights
+
+
+def fit_registered(source, target, registered_source, *, settings=None):
+    """A FaceFit from a registration made elsewhere (a known answer, or another tool's wrap of
+    the source onto the target): correspondence only, no landmarks, no registration.
+
+    registered_source: (n_source, 3) the source neutral deformed onto the target, in the
+    target's coordinates. Every valid triangle of both meshes takes part. The similarity that
+    brings the source's expressions into the target's frame is the least-squares one from the
+    source to its registered positions.
+    """
+    settings = settings or CloneSettings()
+    start = time.perf_counter()
+    src_v = np.asarray(source.vertices, dtype=np.float64)
+    tgt_v = np.asarray(target.vertices, dtype=np.float64)
+    registered = np.asarray(registered_source, dtype=np.float64)
+    src_all, tgt_all = source.triangles(), target.triangles()
+    check_mesh(src_v, src_all, "source mesh")
+    check_mesh(tgt_v, tgt_all, "target mesh")
+    if registered.shape != src_v.shape or not np.all(np.isfinite(registered)):
+        raise ExCloneError(f"the registered source has shape {registered.shape} or invalid values; "
+                           f"expected {src_v.shape} finite positions")
+    src_region = src_all[valid_triangles(src_v, src_all)]
+    tgt_region = tgt_all[valid_triangles(tgt_v, tgt_all)]
+    ids = np.unique(src_region)
+    rot, scale, shift = similarity_transform(src_v[ids], registered[ids])
+    aligned = src_v @ rot.T * scale + shift
+    src_sign, tgt_sign = outward_sign(aligned, src_region), outward_sign(tgt_v, tgt_region)
+    diag = float(np.linalg.norm(np.ptp(tgt_v[np.unique(tgt_region)], axis=0)))
+    vertex_map, mapped, pairs, weights = _correspond(registered, src_region, tgt_v, tgt_region,
+                                                     src_sign, tgt_sign, diag, settings)
+    quality = {"correspondence_coverage": float(np.mean(weights > 0)),
+               "correspondence_vertex_mapped": float(np.mean(mapped)),
+               "similarity_scale": scale, "target_diagonal": diag}
+    none = np.zeros(0, dtype=np.int64)
+    return FaceFit(len(src_v), target, tgt_region, src_region, rot, scale, aligned, vertex_map,
+                   mapped, pairs, weights, settings.formulation, none, none, [], registered,
+                   {"correspondence": time.perf_counter() - start}, quality)
 
 
 def _checked_deltas(source_deltas, names, n_source):
