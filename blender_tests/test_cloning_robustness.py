@@ -94,3 +94,15 @@ def test_one_fit_serves_several_transfers_and_shipped_landmarks_match_found_ones
     assert whole.landmark_names == fit.landmark_names
     with pytest.raises(ExCloneError, match="landmarks do not fit"):
         fit_faces(lib.mesh, target, source_landmarks=(["nose_tip"], np.array([len(lib.mesh.vertices)])))
+
+
+def test_registration_made_elsewhere_must_fit_the_source(source):
+    from exclone_addon.core.cloning import fit_registered
+    mesh, _ = source
+    target = read_obj(DEMO_HEAD)
+    with pytest.raises(ExCloneError, match="registered source has shape"):
+        fit_registered(mesh, target, mesh.vertices[:-1])
+    broken = np.array(mesh.vertices, dtype=np.float64)
+    broken[3] = np.nan
+    with pytest.raises(ExCloneError, match="invalid values"):
+        fit_registered(mesh, target, broken)
