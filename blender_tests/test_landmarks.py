@@ -235,10 +235,8 @@ def fixture_errors(heads, upright, fixtures):
 # Known gaps, measured on the committed detector and kept at the bar: strict xfail, so a
 # fix that closes one makes the run fail until its entry is removed. The template maps ICT's
 # brow and upper-lid points through the face's own heuristic points; MakeHuman's are placed
-# differently enough to land just past 2%; its back of head is flat (the fixture itself gives 5%
-# disagreement).
+# differently enough to land just past 2%.
 KNOWN_FIXTURE_GAPS = {
-    ("demo", "head_back"): "5.25% (flat back of head; tolerance 5%)",
     ("demo", "brow_mid_left"): "2.14%: template brow point",
     ("demo", "brow_mid_right"): "2.14%: template brow point",
     ("demo", "eyelid_upper_left"): "2.57%: template upper-lid point",

@@ -178,7 +178,11 @@ def heuristic_landmarks(vertices, triangles, frame=None):
         skull = near_mid[q[near_mid, 1] > tip[1]]
         ears = used[np.abs(q[used, 1] - tip[1]) < 0.12 * diag]
         found["head_top"] = q[used[np.argmax(q[used, 1])]]
-        found["head_back"] = q[skull[np.argmin(q[skull, 2])]]
+        # A flat back of the skull has no single extreme (a degree of tilt moves it by several
+        # % of the head): the middle of the band within 0.5% of the diagonal of the rearmost.
+        back = skull[q[skull, 2] < q[skull, 2].min() + 0.005 * diag]
+        middle = np.argmin(np.linalg.norm(q[back] - q[back].mean(axis=0), axis=1))
+        found["head_back"] = q[back[middle]]
         found["ear_tip_left"] = q[ears[np.argmax(q[ears, 0])]]
         found["ear_tip_right"] = q[ears[np.argmin(q[ears, 0])]]
 
