@@ -197,10 +197,14 @@ def fixture_tolerance(fixture, name):
 
 
 def fixture_names(head):
-    """Landmarks checked against the fixture. Excluded: on the library head, every template-only
-    landmark (eye_outer_*, mouth_corner_*, brow_*, jaw_*, eyelid_upper_*): the template IS this
-    mesh, those points are its own iBUG vertices, so the check would be circular."""
-    return list(HEURISTIC) if head == "library" else list(NAMES)
+    """Landmarks checked against the fixture. Excluded: on the library head, the landmarks the
+    template places (mouth_corner_*, brow_*, jaw_*): the template IS this mesh, those points
+    are its own iBUG vertices, so the check would be circular. The eye's outer corners and upper
+    lids are found by heuristics on it."""
+    if head == "library":
+        return list(HEURISTIC) + ["eye_outer_left", "eye_outer_right", "eyelid_upper_left",
+                                  "eyelid_upper_right"]
+    return list(NAMES)
 
 
 @pytest.fixture(scope="module")
@@ -234,12 +238,15 @@ def fixture_errors(heads, upright, fixtures):
 
 # Known gaps, measured on the committed detector and kept at the issue's bar: strict xfail, so a
 # fix that closes one makes the run fail until its entry is removed. The template maps ICT's
-# brow and upper-lid points through the face's own heuristic points; MakeHuman's are placed
-# differently enough to land just past 2%.
+# brow points through the face's own heuristic points; MakeHuman's (a mesh without eyebrows,
+# where the fixture itself calls them uncertain) are placed differently enough to land just
+# past 2%.
 KNOWN_FIXTURE_GAPS = {
+    # the heuristic outer corner is where the surface rises back out of the eye opening: on ICT
+    # that is 1.1 cm in front of the annotated canthus, deep in the corner (left: 1.99%)
+    ("library", "eye_outer_right"): "2.36%: heuristic outer corner in front of the canthus",
     ("demo", "brow_mid_left"): "2.14%: template brow point",
     ("demo", "brow_mid_right"): "2.14%: template brow point",
-    ("demo", "eyelid_upper_left"): "2.57%: template upper-lid point",
 }
 
 

@@ -150,6 +150,19 @@ def _outer_eye_corner(q, triangles, inner, direction, nose_length, bin_size, cli
     return pts[window[rises[0] + 1]] if len(rises) else None
 
 
+def _upper_lid(q, skin_triangles, inner, outer, nose_length, bin_size, cliff):
+    """Walking up the skin through the middle of the eye, from the corners' height, the opening
+    (a hole, a socket) ends where the surface rises forward by a cliff: the upper lid's margin.
+    None if there is no such rise (closed lids)."""
+    centres, z, pts = _profile(plane_section(q, skin_triangles, 0, (inner[0] + outer[0]) / 2),
+                               1, bin_size)
+    start = (inner[1] + outer[1]) / 2
+    window = np.flatnonzero((centres >= start - 0.1 * nose_length)
+                            & (centres <= start + 0.8 * nose_length) & ~np.isnan(z))
+    rises = np.flatnonzero(np.diff(z[window]) > cliff)
+    return pts[window[rises[0] + 1]] if len(rises) else None
+
+
 def _front_most(profile, low, high):
     """The profile's front-most point with walk coordinate in [low, high], or None."""
     centres, z, pts = profile
@@ -166,7 +179,8 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     found = {}   # name -> canonical position (snapped to a vertex at the end)
 
     near_mid = used[np.abs(q[used, 0]) < 0.03 * diag]
-    tip = q[near_mid[np.argmax(q[near_mid, 2])]]
+    tip_id = near_mid[np.argmax(q[near_mid, 2])]
+    tip = q[tip_id]
     found["nose_tip"] = tip
 
     # Does the mesh wrap around (a head) or is it a mask? Look behind the nose on the midline.
@@ -215,6 +229,9 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     # at nose-length-scaled distances from the midline.
     if "nose_bridge" in found:
         nose_length = found["nose_bridge"][1] - tip[1]
+        # the skin alone (not eyeballs or lashes in front of the eye opening)
+        parts = vertex_parts(len(vertices), triangles)
+        skin_tris = front_tris[parts[front_tris[:, 0]] == parts[tip_id]]
         # the corners sit at or somewhat below the bridge: cut at several heights, keep the
         # deepest crease on each side
         eye_cuts = [_profile(plane_section(q, front_tris, 1, found["nose_bridge"][1] - k * nose_length),
@@ -237,7 +254,16 @@ def heuristic_landmarks(vertices, triangles, frame=None):
                                           bin_size, 0.01 * diag)
                 if outer is not None:
                     found[f"eye_outer_{side}"] = outer
-    return _snap_symmetric(found, q, used)
+                    lid = _upper_lid(q, skin_tris, corner, outer, nose_length, bin_size,
+                                     0.01 * diag)
+                    if lid is not None:
+                        found[f"eyelid_upper_{side}"] = lid
+    lids = {name: found.pop(name) for name in list(found) if name.startswith("eyelid_upper")}
+    ids = _snap_symmetric(found, q, used)
+    if lids:
+        # found on the skin, kept on it: lashes and eye occluders sit just in front of the margin
+        ids.update(_snap_symmetric(lids, q, np.unique(skin_tris)))
+    return ids
 
 
 def _snap_symmetric(found, q, candidates):
