@@ -237,16 +237,11 @@ def fixture_errors(heads, upright, fixtures):
 
 
 # Known gaps, measured on the committed detector and kept at the bar: strict xfail, so a
-# fix that closes one makes the run fail until its entry is removed. The template maps ICT's
-# brow points through the face's own heuristic points; MakeHuman's (a mesh without eyebrows,
-# where the fixture itself calls them uncertain) are placed differently enough to land just
-# past 2%.
+# fix that closes one makes the run fail until its entry is removed.
 KNOWN_FIXTURE_GAPS = {
     # the heuristic outer corner is where the surface rises back out of the eye opening: on ICT
     # that is 1.1 cm in front of the annotated canthus, deep in the corner (left: 1.99%)
     ("library", "eye_outer_right"): "2.36%: heuristic outer corner in front of the canthus",
-    ("demo", "brow_mid_left"): "2.14%: template brow point",
-    ("demo", "brow_mid_right"): "2.14%: template brow point",
 }
 
 

@@ -37,7 +37,7 @@ NAMES = HEURISTIC + tuple(TEMPLATE_IBUG)
 # (the crown, the back of the head and the alar creases slide along flat or shallow shapes).
 RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip",
                "eye_inner_left", "eye_inner_right", "eye_outer_left", "eye_outer_right",
-               "ear_tip_left", "ear_tip_right")
+               "ear_tip_left", "ear_tip_right", "eyelid_upper_left", "eyelid_upper_right")
 
 
 def plane_section(points, triangles, axis, value):
