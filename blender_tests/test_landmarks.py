@@ -68,10 +68,10 @@ def moved(vertices, base, angle, seed):
 
 
 # MakeHuman's coarse eye region (edges up to 2% of the diagonal there): tilted, its eye corners
-# snap to a neighbouring vertex past the tolerance. Strict xfail, as above.
+# snap to a neighbouring vertex past the tolerance. Strict xfail: a fix that closes a gap makes
+# the run fail until its entry is removed.
 KNOWN_ORIENTATION_GAPS = {
     ("demo", "y_up_tilt20"): "eye corners 2.1-2.3% (tolerance 2.0-2.1%)",
-    ("demo", "front_view_tilt30"): "eye_outer_right 1.76% (tolerance 1.61%)",
 }
 
 
@@ -236,24 +236,8 @@ def fixture_errors(heads, upright, fixtures):
     return errors
 
 
-# Known gaps, measured on the committed detector and kept at the bar: strict xfail, so a
-# fix that closes one makes the run fail until its entry is removed.
-KNOWN_FIXTURE_GAPS = {
-    # the heuristic outer corner is where the surface rises back out of the eye opening: on ICT
-    # that is 1.1 cm in front of the annotated canthus, deep in the corner (left: 1.99%)
-    ("library", "eye_outer_right"): "2.36%: heuristic outer corner in front of the canthus",
-}
-
-
-def _fixture_cases():
-    for head in HEADS:
-        for name in fixture_names(head):
-            gap = KNOWN_FIXTURE_GAPS.get((head, name))
-            marks = [pytest.mark.xfail(strict=True, reason=f"known gap: {gap}")] if gap else []
-            yield pytest.param(head, name, marks=marks, id=f"{head}-{name}")
-
-
-@pytest.mark.parametrize("head,name", list(_fixture_cases()))
+@pytest.mark.parametrize("head,name", [pytest.param(head, name, id=f"{head}-{name}")
+                                       for head in HEADS for name in fixture_names(head)])
 def test_automatic_landmark_near_hand_checked(fixtures, fixture_errors, head, name):
     tolerance = fixture_tolerance(fixtures[head], name)
     error = fixture_errors[head][name]

@@ -37,7 +37,7 @@ NAMES = HEURISTIC + tuple(TEMPLATE_IBUG)
 # (the crown, the back of the head and the alar creases slide along flat or shallow shapes).
 RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip",
                "eye_inner_left", "eye_inner_right", "eye_outer_left", "eye_outer_right",
-               "ear_tip_left", "ear_tip_right", "eyelid_upper_left", "eyelid_upper_right")
+               "ear_tip_left", "ear_tip_right")
 
 
 def plane_section(points, triangles, axis, value):
@@ -138,16 +138,22 @@ def _crease(profile, start, direction, near, far, prominence, smooth_bins, cliff
 
 
 def _outer_eye_corner(q, triangles, inner, direction, nose_length, bin_size, cliff):
-    """Walking out from the inner eye corner at its height, the opening (a socket, an eyeball,
-    a hole) ends where the front surface rises back by a cliff: the outer corner. None if no
-    such rise (the eye region has no opening to find)."""
-    centres, z, pts = _profile(plane_section(q, triangles, 1, inner[1]), 0, bin_size)
-    dist = (centres - inner[0]) * direction
-    window = np.flatnonzero((dist >= 0.3 * nose_length) & (dist <= 1.0 * nose_length) & ~np.isnan(z))
-    if direction < 0:
-        window = window[::-1]
-    rises = np.flatnonzero(np.diff(z[window]) > cliff)
-    return pts[window[rises[0] + 1]] if len(rises) else None
+    """The lateral end of the eye opening (a socket, a hole). Walking out from the inner corner
+    at several heights around it, a cut through the opening ends where the surface rises back by
+    a cliff; the outer corner is the furthest of those ends (cuts above or below the opening
+    have none). None if no cut finds the opening."""
+    ends = []
+    for height in inner[1] + nose_length * np.linspace(-0.1, 0.3, 9):
+        centres, z, pts = _profile(plane_section(q, triangles, 1, height), 0, bin_size)
+        dist = (centres - inner[0]) * direction
+        window = np.flatnonzero((dist >= 0.3 * nose_length) & (dist <= 1.0 * nose_length)
+                                & ~np.isnan(z))
+        if direction < 0:
+            window = window[::-1]
+        rises = np.flatnonzero(np.diff(z[window]) > cliff)
+        if len(rises):
+            ends.append(pts[window[rises[0] + 1]])
+    return max(ends, key=lambda p: p[0] * direction) if ends else None
 
 
 def _upper_lid(q, skin_triangles, inner, outer, nose_length, bin_size, cliff):
@@ -250,7 +256,7 @@ def heuristic_landmarks(vertices, triangles, frame=None):
                 if point is not None:
                     found[name] = point
             if corner is not None:
-                outer = _outer_eye_corner(q, front_tris, corner, direction, nose_length,
+                outer = _outer_eye_corner(q, skin_tris, corner, direction, nose_length,
                                           bin_size, 0.01 * diag)
                 if outer is not None:
                     found[f"eye_outer_{side}"] = outer
