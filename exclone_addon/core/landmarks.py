@@ -137,17 +137,16 @@ def _crease(profile, start, direction, near, far, prominence, smooth_bins, cliff
     return nearest_real(window[np.argmax(bend[window])])
 
 
-def _outer_eye_corner(q, triangles, inner, direction, nose_length, bin_size, cliff):
-    """The lateral end of the eye opening (a socket, a hole). Walking out from the inner corner
-    at several heights around it, a cut through the opening ends where the surface rises back by
-    a cliff; the outer corner is the furthest of those ends (cuts above or below the opening
-    have none). None if no cut finds the opening."""
+def _opening_end(q, triangles, start, direction, near, far, heights, bin_size, cliff):
+    """Where an opening (an eye socket, a hole) ends, walking along x from x = start in
+    `direction` (+1 or -1): on each horizontal cut at `heights`, the first place between `near`
+    and `far` from the start where the surface rises by a cliff. Returns the furthest of those
+    ends in `direction` (cuts above or below the opening have none), or None."""
     ends = []
-    for height in inner[1] + nose_length * np.linspace(-0.1, 0.3, 9):
+    for height in heights:
         centres, z, pts = _profile(plane_section(q, triangles, 1, height), 0, bin_size)
-        dist = (centres - inner[0]) * direction
-        window = np.flatnonzero((dist >= 0.3 * nose_length) & (dist <= 1.0 * nose_length)
-                                & ~np.isnan(z))
+        dist = (centres - start) * direction
+        window = np.flatnonzero((dist >= near) & (dist <= far) & ~np.isnan(z))
         if direction < 0:
             window = window[::-1]
         rises = np.flatnonzero(np.diff(z[window]) > cliff)
@@ -256,10 +255,22 @@ def heuristic_landmarks(vertices, triangles, frame=None):
                 if point is not None:
                     found[name] = point
             if corner is not None:
-                outer = _outer_eye_corner(q, skin_tris, corner, direction, nose_length,
-                                          bin_size, 0.01 * diag)
+                # the eye opening's far ends: the outer corner walking out from the crease, the
+                # inner one walking back in from the middle (both over cuts at several heights:
+                # one cut at the crease's height misses the opening when the face is tilted)
+                outer = _opening_end(q, skin_tris, corner[0], direction, 0.3 * nose_length,
+                                     1.0 * nose_length,
+                                     corner[1] + nose_length * np.linspace(-0.1, 0.3, 9),
+                                     bin_size, 0.01 * diag)
                 if outer is not None:
                     found[f"eye_outer_{side}"] = outer
+                    middle = (corner[0] + outer[0]) / 2
+                    inner = _opening_end(q, skin_tris, middle, -direction, 0.0,
+                                         (middle - corner[0]) * direction + 0.3 * nose_length,
+                                         corner[1] + nose_length * np.linspace(-0.1, 0.2, 9),
+                                         bin_size, 0.01 * diag)
+                    if inner is not None:
+                        corner = found[f"eye_inner_{side}"] = inner
                     lid = _upper_lid(q, skin_tris, corner, outer, nose_length, bin_size,
                                      0.01 * diag)
                     if lid is not None:
