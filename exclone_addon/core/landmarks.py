@@ -3,8 +3,10 @@
 Fourteen points by geometric heuristics on the face's canonical frame (core.orientation: +X the
 character's left, +Y up, +Z forward), walking surface profiles: the mid-sagittal profile (front-most
 vertex per height bin near x = 0) and horizontal profiles through the nose tip and the nose bridge.
-Then the rest by an RBF with a linear term from a template face's heuristic points to the mesh's,
-snapped to the mesh. Points that do not exist (a mask has no back of head, no ear tips) are left out.
+Where the eye has an opening in the skin, its ends give the eye corners and a vertical profile
+through it the upper lid. Then the rest by an RBF with a linear term from a template face's
+heuristic points to the mesh's, snapped to the mesh. Points that do not exist (a mask has no back
+of head, no ear tips) are left out.
 """
 import json
 from functools import lru_cache
