@@ -222,26 +222,8 @@ def fixture_errors(heads, upright, fixtures):
     return errors
 
 
-# Known gaps, measured on the committed detector and kept at the issue's bar: strict xfail, so a
-# fix that closes one makes the run fail until its entry is removed.
-KNOWN_FIXTURE_GAPS = {
-    # The template's jaw point lands 2.1-2.4% from the hand-checked ones (closest surface
-    # points), but snapping to MakeHuman's coarse jaw takes the hand-checked vertex on the right
-    # and a vertex 4.01% away on the left (the pair is mirrored through the face frame's plane,
-    # about 0.85 degrees off the mesh's own). With an exact plane (tried) both sides land 4.01%.
-    ("demo", "jaw_left"): "4.01% (tolerance 3%): vertex snap on a coarse jaw",
-}
-
-
-def _fixture_cases():
-    for head in HEADS:
-        for name in fixture_names(head):
-            gap = KNOWN_FIXTURE_GAPS.get((head, name))
-            marks = [pytest.mark.xfail(strict=True, reason=f"known gap: {gap}")] if gap else []
-            yield pytest.param(head, name, marks=marks, id=f"{head}-{name}")
-
-
-@pytest.mark.parametrize("head,name", list(_fixture_cases()))
+@pytest.mark.parametrize("head,name", [pytest.param(head, name, id=f"{head}-{name}")
+                                       for head in HEADS for name in fixture_names(head)])
 def test_automatic_landmark_near_hand_checked(fixtures, fixture_errors, head, name):
     tolerance = fixture_tolerance(fixtures[head], name)
     error = fixture_errors[head][name]
@@ -253,11 +235,15 @@ def test_shipped_landmark_template_is_current():
     # the template file is derived data: stale after a heuristic or library change
     from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template
     shipped = json.loads(TEMPLATE_FILE.read_text())
-    fresh, (names, ids) = compute_template()
+    fresh, normals, (names, ids) = compute_template()
     positions = shipped["canonical_positions"]
     assert set(positions) == set(fresh), "run scripts/make_landmark_template.py"
     for name, position in fresh.items():
         assert np.allclose(positions[name], position, atol=1e-6), (
             f"{name} changed: run scripts/make_landmark_template.py")
+    assert set(shipped["canonical_normals"]) == set(normals), "run scripts/make_landmark_template.py"
+    for name, normal in normals.items():
+        assert np.allclose(shipped["canonical_normals"][name], normal, atol=1e-6), (
+            f"{name}'s normal changed: run scripts/make_landmark_template.py")
     assert shipped["library_landmarks"] == dict(zip(names, ids.tolist())), (
         "the library's landmarks changed: run scripts/make_landmark_template.py")

@@ -15,12 +15,14 @@ from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template  # noqa
 
 
 def main():
-    template, (names, ids) = compute_template()
+    template, normals, (names, ids) = compute_template()
     data = {
         "about": "canonical positions (+X left, +Y up, +Z forward; library units) of the bundled "
-                 "ICT-FaceKit face's landmarks, and its automatic landmarks as vertex ids; made by "
+                 "ICT-FaceKit face's landmarks, the outward normals of those placed by their "
+                 "normal, and its automatic landmarks as vertex ids; made by "
                  "scripts/make_landmark_template.py",
         "canonical_positions": {name: [round(float(c), 9) for c in p] for name, p in template.items()},
+        "canonical_normals": {name: [round(float(c), 9) for c in n] for name, n in normals.items()},
         "library_landmarks": {name: int(i) for name, i in zip(names, ids)},
     }
     TEMPLATE_FILE.write_text(json.dumps(data, indent=1) + "\n")

@@ -19,7 +19,7 @@ from scipy.signal import find_peaks
 from scipy.spatial import cKDTree
 
 from .errors import ExCloneError
-from .mesh import vertex_parts
+from .mesh import vertex_normals, vertex_parts
 from .orientation import face_frame
 
 HEURISTIC = (
@@ -35,6 +35,10 @@ TEMPLATE_IBUG = {
     "eyelid_upper_left": 44, "eyelid_upper_right": 37,
 }
 NAMES = HEURISTIC + tuple(TEMPLATE_IBUG)
+# Template points placed by their surface direction rather than their position: the jaw point
+# lies on a smoothly turning cheek where the spline's position slides along the surface, while
+# its normal (iBUG 12's: about 72 degrees to the side, 21 down) says where it is.
+NORMAL_PLACED = ("jaw_left", "jaw_right")
 # The heuristic points that carry the template's: the ones that stay put when the face turns
 # (the crown, the back of the head and the alar creases slide along flat or shallow shapes).
 RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip",
@@ -285,10 +289,10 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     return ids
 
 
-def _snap_symmetric(found, q, candidates):
-    """Snap canonical positions to vertices; a left/right pair is first made mirror-symmetric
-    (each side the mean of itself and its mirrored twin): faces are nearly symmetric, and one
-    side's detection noise should not make the two sides disagree."""
+def _symmetric(found):
+    """Canonical points or directions with each left/right pair made mirror-symmetric (each
+    side the mean of itself and its mirrored twin): faces are nearly symmetric, and one side's
+    detection noise should not make the two sides disagree."""
     points = dict(found)
     mirror = np.array([-1.0, 1.0, 1.0])
     for name in found:
@@ -296,17 +300,45 @@ def _snap_symmetric(found, q, candidates):
             right = name[:-5] + "_right"
             mean = (np.asarray(found[name]) + mirror * found[right]) / 2
             points[name], points[right] = mean, mirror * mean
+    return points
+
+
+def _snap_symmetric(found, q, candidates):
+    """Snap canonical positions, made mirror-symmetric, to the nearest candidate vertices."""
+    points = _symmetric(found)
     names = list(points)
     _, ids = cKDTree(q[candidates]).query(np.array([points[n] for n in names]))
     return {n: int(candidates[i]) for n, i in zip(names, ids)}
+
+
+def _place_by_normal(found, wanted_normals, q, normals, candidates, radius):
+    """For each canonical position, the candidate vertex within `radius` whose normal is nearest
+    the wanted one (positions and normals made mirror-symmetric first); the nearest vertex if
+    none is that close."""
+    points = _symmetric(found)
+    wanted = _symmetric({name: wanted_normals[name] for name in found})
+    ids = _snap_symmetric(found, q, candidates)
+    for name, point in points.items():
+        near = candidates[np.linalg.norm(q[candidates] - point, axis=1) < radius]
+        if len(near):
+            ids[name] = int(near[np.argmax(normals[near] @ wanted[name])])
+    return ids
+
+
+def _outward_normals(q, triangles, tip):
+    """Vertex normals of a face in its canonical frame, pointing out of the face (forward at the
+    nose tip, vertex `tip`, whatever the winding)."""
+    normals = vertex_normals(q, triangles)
+    return normals if normals[tip, 2] >= 0 else -normals
 
 
 TEMPLATE_FILE = Path(__file__).resolve().parent.parent / "data" / "landmark_template.json"
 
 
 def compute_template():
-    """The bundled library's face as template: its canonical landmark positions by name, and
-    its own automatic landmarks (names, vertex ids) found with that template.
+    """The bundled library's face as template: its canonical landmark positions by name, the
+    outward normals of the NORMAL_PLACED ones, and its own automatic landmarks (names, vertex
+    ids) found with that template: (positions, normals, (names, ids)).
 
     Shipped precomputed in TEMPLATE_FILE (scripts/make_landmark_template.py writes it; a test
     checks it is current): computing them costs a second on every first clone, and the library's
@@ -323,7 +355,9 @@ def compute_template():
     ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items() if name not in ids})
     q = frame.to_canonical(verts)
     template = {name: q[v] for name, v in ids.items()}
-    return template, automatic_landmarks(verts, tris, frame, template)
+    outward = _outward_normals(q, tris, ids["nose_tip"])
+    normals = {name: outward[ids[name]] for name in NORMAL_PLACED if name in ids}
+    return template, normals, automatic_landmarks(verts, tris, frame, template, normals)
 
 
 @lru_cache(maxsize=1)
@@ -335,6 +369,10 @@ def _template():
     return {name: np.array(position) for name, position in _shipped()["canonical_positions"].items()}
 
 
+def _template_normals():
+    return {name: np.array(normal) for name, normal in _shipped()["canonical_normals"].items()}
+
+
 def library_landmarks():
     """The bundled library's automatic landmarks, shipped: (names, vertex ids); None before
     scripts/make_landmark_template.py first wrote them."""
@@ -344,15 +382,17 @@ def library_landmarks():
     return list(marks), np.array(list(marks.values()), dtype=np.int64)
 
 
-def automatic_landmarks(vertices, triangles, frame=None, template=None):
+def automatic_landmarks(vertices, triangles, frame=None, template=None, template_normals=None):
     """Heuristic landmarks plus template ones: (names, vertex ids), in NAMES order.
 
-    template: {name: canonical position}; the shipped one by default.
+    template: {name: canonical position}, template_normals: {name: canonical outward normal} of
+    the NORMAL_PLACED points; the shipped ones by default.
     Raises ExCloneError if too few heuristic points are found to place the template.
     """
     frame = frame or face_frame(vertices, triangles)
     found = heuristic_landmarks(vertices, triangles, frame)
     template = template if template is not None else _template()
+    template_normals = template_normals if template_normals is not None else _template_normals()
     shared = [n for n in RBF_SOURCES if n in found and n in template]
     if len(shared) < 6:
         missing = ", ".join(n for n in RBF_SOURCES if n not in found)
@@ -367,7 +407,12 @@ def automatic_landmarks(vertices, triangles, frame=None, template=None):
     parts = vertex_parts(len(vertices), triangles)
     on_face = np.flatnonzero(np.isin(parts, parts[list(found.values())]))
     extra = [n for n in TEMPLATE_IBUG if n in template and n not in found]
-    mapped = rbf(np.array([template[n] for n in extra]))
-    found.update(_snap_symmetric(dict(zip(extra, mapped)), q, on_face))
+    mapped = dict(zip(extra, rbf(np.array([template[n] for n in extra]))))
+    by_normal = {n: mapped.pop(n) for n in NORMAL_PLACED if n in mapped and n in template_normals}
+    found.update(_snap_symmetric(mapped, q, on_face))
+    if by_normal:
+        normals = _outward_normals(q, triangles, found["nose_tip"])
+        found.update(_place_by_normal(by_normal, template_normals, q, normals, on_face,
+                                      0.05 * frame.diagonal))
     names = [n for n in NAMES if n in found]
     return names, np.array([found[n] for n in names], dtype=np.int64)
