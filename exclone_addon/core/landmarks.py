@@ -193,6 +193,10 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     tip_id = near_mid[np.argmax(q[near_mid, 2])]
     tip = q[tip_id]
     found["nose_tip"] = tip
+    # The skin: the part the nose tip is on. Every point snaps to it, and the eye's points are
+    # looked for on it alone (eyeballs, lashes and eye occluders sit in front of the opening).
+    parts = vertex_parts(len(vertices), triangles)
+    skin = used[parts[used] == parts[tip_id]]
 
     # Does the mesh wrap around (a head) or is it a mask? Look behind the nose on the midline.
     band = near_mid[np.abs(q[near_mid, 1] - tip[1]) < 0.15 * diag]
@@ -240,8 +244,6 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     # at nose-length-scaled distances from the midline.
     if "nose_bridge" in found:
         nose_length = found["nose_bridge"][1] - tip[1]
-        # the skin alone (not eyeballs or lashes in front of the eye opening)
-        parts = vertex_parts(len(vertices), triangles)
         skin_tris = front_tris[parts[front_tris[:, 0]] == parts[tip_id]]
         # the corners sit at or somewhat below the bridge: cut at several heights, keep the
         # deepest crease on each side
@@ -281,12 +283,7 @@ def heuristic_landmarks(vertices, triangles, frame=None):
                                      0.01 * diag)
                     if lid is not None:
                         found[f"eyelid_upper_{side}"] = lid
-    lids = {name: found.pop(name) for name in list(found) if name.startswith("eyelid_upper")}
-    ids = _snap_symmetric(found, q, used)
-    if lids:
-        # found on the skin, kept on it: lashes and eye occluders sit just in front of the margin
-        ids.update(_snap_symmetric(lids, q, np.unique(skin_tris)))
-    return ids
+    return _snap_symmetric(found, q, skin)
 
 
 def _symmetric(found):
