@@ -355,25 +355,34 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
     return result
 
 
+# A separate part follows the face only if it comes this close to it (x the solved region's
+# bounding-box diagonal): eyes, teeth and lashes do; a prop or a second body does not.
+FOLLOW_REACH = 0.1
+
+
 def _follow_unsolved(result, vertices, all_tris, used_tris):
     """Vertices the transfer did not solve follow the solved ones next to them.
 
     In a solved part (only on degenerate, skipped triangles) a vertex copies its nearest solved
     vertex. A separate part without landmarks (an eyeball, teeth) moves as a rigid body: the
     rotation and translation that best carry the solved vertices nearest to it (its anchors),
-    so it keeps its shape (teeth follow the jaw, eyes the lids around them).
+    so it keeps its shape (teeth follow the jaw, eyes the lids around them); a part further than
+    FOLLOW_REACH from the face stays where it is.
     """
     solved = np.unique(used_tris)
     orphans = np.setdiff1d(np.unique(all_tris), solved)
     if not len(orphans):
         return
-    _, nearest = cKDTree(vertices[solved]).query(vertices[orphans])
+    gap, nearest = cKDTree(vertices[solved]).query(vertices[orphans])
     anchors = solved[nearest]
     parts = vertex_parts(len(vertices), all_tris)
     in_solved_part = np.isin(parts[orphans], parts[solved])
     result[:, orphans[in_solved_part]] = result[:, anchors[in_solved_part]]
+    reach = FOLLOW_REACH * np.linalg.norm(np.ptp(vertices[solved], axis=0))
     for part in np.unique(parts[orphans[~in_solved_part]]):
         mine = parts[orphans] == part
+        if gap[mine].min() > reach:          # away from the face (a prop): it stays
+            continue
         members, ref = orphans[mine], np.unique(anchors[mine])
         if len(ref) < 3:                                  # too few anchors to fix a rotation
             result[:, members] = result[:, ref].mean(axis=1, keepdims=True)
