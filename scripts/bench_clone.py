@@ -23,9 +23,15 @@ each misses something: tracemalloc sees Python and numpy allocations but not Sup
 malloc'd factors; ru_maxrss growth (peak resident size during the cold clone minus that after
 loading the inputs) sees everything the process touched.
 
-Error metric everywhere: mean distance of the registered source region's vertices to the target
-region's surface (core.proximity.TriangleSurface) / the target region's bounding-box diagonal;
-for the engine this is CloneResult.quality["registration_mean_distance_rel"].
+Error metrics everywhere, distances of the registered source region's vertices to the target
+region's surface (core.proximity.TriangleSurface) / the target region's bounding-box diagonal,
+averaged three ways: over all region vertices; over those inside the target's coverage (their
+closest target triangle does not touch its open border: a few % of the face region overhang the
+demo head's neck cut, and where those drift decides the first mean); and over those whose closest
+point is valid by the engine's rule (registration.closest_valid_points: normals within 90
+degrees, within the cut-off, borders to borders), the overlap the engine's own
+CloneResult.quality["registration_mean_distance_rel"] and the quality bars are measured on. The
+targets are judged on the overlap; all three are reported.
 
 --quick: only the face case and the reduced/augmented comparison (no trimesh, no full head,
 no dense target). Targets are reported as booleans, never asserted.
@@ -47,11 +53,13 @@ import scipy
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
+from exclone_addon.core.cloning import CloneSettings, clone_expressions, outward_sign  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
-from exclone_addon.core.mesh import PolyMesh, read_obj, valid_triangles, vertex_parts  # noqa: E402
-from exclone_addon.core.proximity import TriangleSurface  # noqa: E402
-from exclone_addon.core.registration import PRESETS, similarity_transform  # noqa: E402
+from exclone_addon.core.mesh import (PolyMesh, boundary_edges, read_obj,  # noqa: E402
+                                     valid_triangles, vertex_normals, vertex_parts)
+from exclone_addon.core.proximity import SegmentSet, TriangleSurface  # noqa: E402
+from exclone_addon.core.registration import (PRESETS, Schedule,  # noqa: E402
+                                             closest_valid_points, similarity_transform)
 
 DEMO_HEAD = ROOT / "exclone_addon" / "data" / "demo_head.obj"
 FACE_VERTICES = 9409           # ICT-FaceKit's "face" part is vertices [0, 9409)
@@ -67,6 +75,10 @@ TARGET_FACE_SETUP_S = 2.0      # landmarks + registration + correspondence, face
 TARGET_FACE_TRANSFER_S = 1.0   # transfer of all 57 expressions after that
 TARGET_REDUCED_SPEEDUP = 2.5   # reduced vs augmented registration, at no worse error
 TARGET_TRIMESH_SPEEDUP = 10.0  # reduced vs trimesh nricp_sumner, at equal or better error
+# the error the targets are judged on, and the ratios reported (other / reduced)
+OVERLAP = "registration_mean_distance_overlap_rel"
+ERROR_RATIOS = {"error": "registration_mean_distance_rel",
+                "error_covered": "registration_mean_distance_covered_rel", "error_overlap": OVERLAP}
 
 
 # ---------------------------------------------------------------------------- inputs
@@ -117,12 +129,35 @@ def regions(source, target, src_lm, tgt_lm):
     return out
 
 
-def registration_error(registered, src_region, target_vertices, tgt_region):
-    """Mean distance of the registered region vertices to the target surface / target diagonal."""
+def registration_errors(registered, src_region, target_vertices, tgt_region):
+    """Mean distance of the registered region vertices to the target surface / target diagonal:
+    over all of them, over those inside the target's coverage, and over those whose closest
+    point is valid by the engine's own rule (where the surfaces overlap); and those shares."""
     ids = np.unique(src_region)
     diag = float(np.linalg.norm(np.ptp(target_vertices[np.unique(tgt_region)], axis=0)))
-    distances = TriangleSurface(target_vertices, tgt_region).closest(registered[ids])[2]
-    return float(distances.mean()) / diag
+    surface = TriangleSurface(target_vertices, tgt_region)
+    _, tri, distances, _ = surface.closest(registered[ids])
+    target_edges = boundary_edges(tgt_region)
+    border = np.zeros(len(target_vertices), dtype=bool)
+    border[target_edges.ravel()] = True
+    inside = ~border[tgt_region[tri]].any(axis=1)
+    # the engine's overlap: registration.closest_valid_points with its default cut-offs
+    source_border = np.zeros(len(registered), dtype=bool)
+    source_border[boundary_edges(src_region).ravel()] = True
+    normals = outward_sign(registered, src_region) * vertex_normals(registered, src_region)
+    target_normals = outward_sign(target_vertices, tgt_region) * vertex_normals(target_vertices,
+                                                                                tgt_region)
+    schedule = Schedule()
+    _, overlap, overlap_distances = closest_valid_points(
+        registered[ids], normals[ids], source_border[ids], surface, target_normals, border,
+        SegmentSet(target_vertices, target_edges), schedule.max_distance * diag,
+        schedule.border_distance * diag)
+    return {"registration_mean_distance_rel": float(distances.mean()) / diag,
+            "registration_mean_distance_covered_rel": float(distances[inside].mean()) / diag,
+            "registration_mean_distance_overlap_rel":
+                float(overlap_distances[overlap].mean()) / diag,
+            "covered_fraction": float(inside.mean()),
+            "overlap_fraction": float(overlap.mean())}
 
 
 # ---------------------------------------------------------------------------- measurements
@@ -228,22 +263,22 @@ def run_compare(with_trimesh, repeats=2):
             "registration_seconds": round(best.timings["registration"], 4),
             "registration_seconds_all": [round(r.timings["registration"], 4) for r in results],
             "transfer_seconds": round(best.timings["transfer"], 4),
-            "registration_mean_distance_rel": registration_error(
-                best.registered_source, src_region, target.vertices, tgt_region),
+            **registration_errors(best.registered_source, src_region, target.vertices,
+                                  tgt_region),
             "engine_reported_error_rel": best.quality["registration_mean_distance_rel"],
             "registration_valid_fraction": best.quality["registration_valid_fraction"],
         }
     red, aug = out["reduced"], out["augmented"]
     out["augmented_over_reduced_time"] = round(aug["registration_seconds"] / red["registration_seconds"], 2)
-    out["augmented_over_reduced_error"] = round(
-        aug["registration_mean_distance_rel"] / red["registration_mean_distance_rel"], 3)
+    for key, metric in ERROR_RATIOS.items():
+        out[f"augmented_over_reduced_{key}"] = round(aug[metric] / red[metric], 3)
     if with_trimesh:
         out["trimesh_nricp_sumner"] = run_trimesh(source, target, src_lm, tgt_lm, src_region,
                                                    tgt_region)
         tri = out["trimesh_nricp_sumner"]
         out["trimesh_over_reduced_time"] = round(tri["seconds"] / red["registration_seconds"], 2)
-        out["trimesh_over_reduced_error"] = round(
-            tri["registration_mean_distance_rel"] / red["registration_mean_distance_rel"], 3)
+        for key, metric in ERROR_RATIOS.items():
+            out[f"trimesh_over_reduced_{key}"] = round(tri[metric] / red[metric], 3)
     return out
 
 
@@ -279,8 +314,7 @@ def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
     full[ids] = registered
     return {
         "seconds": round(seconds, 4),
-        "registration_mean_distance_rel": registration_error(full, src_region, target.vertices,
-                                                             tgt_region),
+        **registration_errors(full, src_region, target.vertices, tgt_region),
         "trimesh_version": trimesh.__version__,
         "parameters": {
             "steps_wc_wi_ws_wl_wn": TRIMESH_STEPS,
@@ -366,13 +400,12 @@ def targets(cases, compare):
         red, aug = compare["reduced"], compare["augmented"]
         out[f"reduced_{TARGET_REDUCED_SPEEDUP:g}x_faster_than_augmented_no_worse_error"] = bool(
             compare["augmented_over_reduced_time"] >= TARGET_REDUCED_SPEEDUP
-            and red["registration_mean_distance_rel"] <= aug["registration_mean_distance_rel"])
+            and red[OVERLAP] <= aug[OVERLAP])
     if "trimesh_nricp_sumner" in compare:
         tri = compare["trimesh_nricp_sumner"]
         out[f"reduced_{TARGET_TRIMESH_SPEEDUP:g}x_faster_than_trimesh_equal_or_better_error"] = bool(
             compare["trimesh_over_reduced_time"] >= TARGET_TRIMESH_SPEEDUP
-            and compare["reduced"]["registration_mean_distance_rel"]
-            <= tri["registration_mean_distance_rel"])
+            and compare["reduced"][OVERLAP] <= tri[OVERLAP])
     return out
 
 
