@@ -53,10 +53,10 @@ import scipy
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-from exclone_addon.core.cloning import CloneSettings, clone_expressions, outward_sign  # noqa: E402
+from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
-from exclone_addon.core.mesh import (PolyMesh, boundary_edges, read_obj,  # noqa: E402
-                                     valid_triangles, vertex_normals, vertex_parts)
+from exclone_addon.core.mesh import (PolyMesh, boundary_edges, outward_sign,  # noqa: E402
+                                     read_obj, valid_triangles, vertex_normals, vertex_parts)
 from exclone_addon.core.proximity import SegmentSet, TriangleSurface  # noqa: E402
 from exclone_addon.core.registration import (PRESETS, Schedule,  # noqa: E402
                                              closest_valid_points, similarity_transform)

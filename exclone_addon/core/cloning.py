@@ -11,7 +11,7 @@ from . import deformation
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
 from .errors import ExCloneError
 from .landmarks import automatic_landmarks
-from .mesh import check_mesh, triangle_normals, valid_triangles, vertex_normals, vertex_parts
+from .mesh import check_mesh, outward_sign, valid_triangles, vertex_normals, vertex_parts
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .transfer import Transfer
@@ -38,16 +38,12 @@ class CloneResult:
     quality: dict = field(default_factory=dict)   # e.g. registration_mean_distance_rel
 
 
-def outward_sign(vertices, triangles):
-    """+1 if the triangles' winding makes normals point out of the face, else -1.
-
-    Normals of a head or of a face shell point away from the enclosed side: the area-weighted
-    sum of n . (p - centre) is positive when they point out.
-    """
-    n = triangle_normals(vertices, triangles, normalize=False)
-    centroids = vertices[triangles].mean(axis=1)
-    centre = centroids.mean(axis=0)
-    return 1.0 if np.einsum("ij,ij->", n, centroids - centre) >= 0 else -1.0
+def _checked_mesh(mesh, what):
+    """(vertices as float64, its valid triangles); MeshError if the pipeline cannot use it."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    triangles = mesh.triangles()
+    check_mesh(vertices, triangles, what)
+    return vertices, triangles[valid_triangles(vertices, triangles)]
 
 
 def _checked_landmarks(landmarks, n_source, n_target):
@@ -127,13 +123,8 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
         if progress:
             progress(fraction, message)
 
-    src_v = np.asarray(source.vertices, dtype=np.float64)
-    tgt_v = np.asarray(target.vertices, dtype=np.float64)
-    src_all, tgt_all = source.triangles(), target.triangles()
-    check_mesh(src_v, src_all, "source mesh")
-    check_mesh(tgt_v, tgt_all, "target mesh")
-    src_tris = src_all[valid_triangles(src_v, src_all)]
-    tgt_tris = tgt_all[valid_triangles(tgt_v, tgt_all)]
+    src_v, src_tris = _checked_mesh(source, "source mesh")
+    tgt_v, tgt_tris = _checked_mesh(target, "target mesh")
 
     # 1. Landmarks
     report(0.0, "landmarks")
@@ -252,17 +243,12 @@ def fit_registered(source, target, registered_source, *, settings=None):
     """
     settings = settings or CloneSettings()
     start = time.perf_counter()
-    src_v = np.asarray(source.vertices, dtype=np.float64)
-    tgt_v = np.asarray(target.vertices, dtype=np.float64)
+    src_v, src_region = _checked_mesh(source, "source mesh")
+    tgt_v, tgt_region = _checked_mesh(target, "target mesh")
     registered = np.asarray(registered_source, dtype=np.float64)
-    src_all, tgt_all = source.triangles(), target.triangles()
-    check_mesh(src_v, src_all, "source mesh")
-    check_mesh(tgt_v, tgt_all, "target mesh")
     if registered.shape != src_v.shape or not np.all(np.isfinite(registered)):
         raise ExCloneError(f"the registered source has shape {registered.shape} or invalid values; "
                            f"expected {src_v.shape} finite positions")
-    src_region = src_all[valid_triangles(src_v, src_all)]
-    tgt_region = tgt_all[valid_triangles(tgt_v, tgt_all)]
     ids = np.unique(src_region)
     rot, scale, shift = similarity_transform(src_v[ids], registered[ids])
     aligned = src_v @ rot.T * scale + shift

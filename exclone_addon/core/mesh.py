@@ -111,6 +111,18 @@ def vertex_normals(vertices, triangles):
     return np.divide(n, length, out=np.zeros_like(n), where=length > 0)
 
 
+def outward_sign(vertices, triangles):
+    """+1 if the triangles' winding makes normals point out of the face, else -1.
+
+    Normals of a head or of a face shell point away from the enclosed side: the area-weighted
+    sum of n . (p - centre) is positive when they point out.
+    """
+    n = triangle_normals(vertices, triangles, normalize=False)
+    centroids = vertices[triangles].mean(axis=1)
+    centre = centroids.mean(axis=0)
+    return 1.0 if np.einsum("ij,ij->", n, centroids - centre) >= 0 else -1.0
+
+
 def triangle_areas(vertices, triangles):
     return 0.5 * np.linalg.norm(triangle_normals(vertices, triangles, normalize=False), axis=1)
 
