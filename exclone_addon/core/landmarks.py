@@ -19,7 +19,7 @@ from scipy.signal import find_peaks
 from scipy.spatial import cKDTree
 
 from .errors import ExCloneError
-from .mesh import vertex_normals, vertex_parts
+from .mesh import outward_sign, vertex_normals, vertex_parts
 from .orientation import face_frame
 
 HEURISTIC = (
@@ -143,21 +143,26 @@ def _crease(profile, start, direction, near, far, prominence, smooth_bins, cliff
     return nearest_real(window[np.argmax(bend[window])])
 
 
+def _first_rise(profile, start, direction, near, far, cliff):
+    """Walking a profile from `start` in `direction` (+1 or -1), the first sample between `near`
+    and `far` from the start where the surface rises forward by more than `cliff` from the one
+    before: where an opening (an eye socket, a hole) ends. None if there is no such rise."""
+    centres, z, pts = profile
+    dist = (centres - start) * direction
+    window = np.flatnonzero((dist >= near) & (dist <= far) & ~np.isnan(z))
+    if direction < 0:
+        window = window[::-1]
+    rises = np.flatnonzero(np.diff(z[window]) > cliff)
+    return pts[window[rises[0] + 1]] if len(rises) else None
+
+
 def _opening_end(q, triangles, start, direction, near, far, heights, bin_size, cliff):
-    """Where an opening (an eye socket, a hole) ends, walking along x from x = start in
-    `direction` (+1 or -1): on each horizontal cut at `heights`, the first place between `near`
-    and `far` from the start where the surface rises by a cliff. Returns the furthest of those
-    ends in `direction` (cuts above or below the opening have none), or None."""
-    ends = []
-    for height in heights:
-        centres, z, pts = _profile(plane_section(q, triangles, 1, height), 0, bin_size)
-        dist = (centres - start) * direction
-        window = np.flatnonzero((dist >= near) & (dist <= far) & ~np.isnan(z))
-        if direction < 0:
-            window = window[::-1]
-        rises = np.flatnonzero(np.diff(z[window]) > cliff)
-        if len(rises):
-            ends.append(pts[window[rises[0] + 1]])
+    """Where an opening ends walking along x from x = start in `direction`: the _first_rise on
+    each horizontal cut at `heights`, the furthest of those in `direction` (cuts above or below
+    the opening have none), or None."""
+    ends = [_first_rise(_profile(plane_section(q, triangles, 1, height), 0, bin_size), start,
+                        direction, near, far, cliff) for height in heights]
+    ends = [end for end in ends if end is not None]
     return max(ends, key=lambda p: p[0] * direction) if ends else None
 
 
@@ -165,13 +170,9 @@ def _upper_lid(q, skin_triangles, inner, outer, nose_length, bin_size, cliff):
     """Walking up the skin through the middle of the eye, from the corners' height, the opening
     (a hole, a socket) ends where the surface rises forward by a cliff: the upper lid's margin.
     None if there is no such rise (closed lids)."""
-    centres, z, pts = _profile(plane_section(q, skin_triangles, 0, (inner[0] + outer[0]) / 2),
-                               1, bin_size)
-    start = (inner[1] + outer[1]) / 2
-    window = np.flatnonzero((centres >= start - 0.1 * nose_length)
-                            & (centres <= start + 0.8 * nose_length) & ~np.isnan(z))
-    rises = np.flatnonzero(np.diff(z[window]) > cliff)
-    return pts[window[rises[0] + 1]] if len(rises) else None
+    profile = _profile(plane_section(q, skin_triangles, 0, (inner[0] + outer[0]) / 2), 1, bin_size)
+    return _first_rise(profile, (inner[1] + outer[1]) / 2, +1, -0.1 * nose_length,
+                       0.8 * nose_length, cliff)
 
 
 def _front_most(profile, low, high):
@@ -314,19 +315,14 @@ def _place_by_normal(found, wanted_normals, q, normals, candidates, radius):
     none is that close."""
     points = _symmetric(found)
     wanted = _symmetric({name: wanted_normals[name] for name in found})
-    ids = _snap_symmetric(found, q, candidates)
+    ids = {}
     for name, point in points.items():
-        near = candidates[np.linalg.norm(q[candidates] - point, axis=1) < radius]
-        if len(near):
-            ids[name] = int(near[np.argmax(normals[near] @ wanted[name])])
+        distance = np.linalg.norm(q[candidates] - point, axis=1)
+        near = np.flatnonzero(distance < radius)
+        pick = near[np.argmax(normals[candidates[near]] @ wanted[name])] if len(near) \
+            else np.argmin(distance)
+        ids[name] = int(candidates[pick])
     return ids
-
-
-def _outward_normals(q, triangles, tip):
-    """Vertex normals of a face in its canonical frame, pointing out of the face (forward at the
-    nose tip, vertex `tip`, whatever the winding)."""
-    normals = vertex_normals(q, triangles)
-    return normals if normals[tip, 2] >= 0 else -normals
 
 
 TEMPLATE_FILE = Path(__file__).resolve().parent.parent / "data" / "landmark_template.json"
@@ -352,7 +348,7 @@ def compute_template():
     ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items() if name not in ids})
     q = frame.to_canonical(verts)
     template = {name: q[v] for name, v in ids.items()}
-    outward = _outward_normals(q, tris, ids["nose_tip"])
+    outward = outward_sign(q, tris) * vertex_normals(q, tris)
     normals = {name: outward[ids[name]] for name in NORMAL_PLACED if name in ids}
     return template, normals, automatic_landmarks(verts, tris, frame, template, normals)
 
@@ -408,7 +404,7 @@ def automatic_landmarks(vertices, triangles, frame=None, template=None, template
     by_normal = {n: mapped.pop(n) for n in NORMAL_PLACED if n in mapped and n in template_normals}
     found.update(_snap_symmetric(mapped, q, on_face))
     if by_normal:
-        normals = _outward_normals(q, triangles, found["nose_tip"])
+        normals = outward_sign(q, triangles) * vertex_normals(q, triangles)
         found.update(_place_by_normal(by_normal, template_normals, q, normals, on_face,
                                       0.05 * frame.diagonal))
     names = [n for n in NAMES if n in found]
