@@ -1,56 +1,19 @@
-"""pytest setup: ExClone's tests run in background Blender through the pip `bpy` module.
+"""pytest setup shared by both halves of the suite; it never imports bpy.
 
-The add-on is registered once per session; every test starts from a factory-empty scene.
+core/     the pure numpy/scipy/OpenCV core: runs without bpy (scripts/test.sh proves it by
+          running this half with bpy made unimportable).
+blender/  the Blender layer and the command lines, in background Blender (the pip `bpy` module).
+helpers/  builders the tests share (known-answer meshes and takes, a stand-in UI layout).
 """
-import os
-import shutil
 import sys
-import tempfile
 from pathlib import Path
 
 import pytest
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
-# Real meshes that are too big for the repo (ICT-FaceKit, MakeHuman); tests needing them skip without.
-SHARED_DATA = REPO_ROOT.parent / "shared" / "data"
-
 sys.dont_write_bytecode = True  # tests must not write into the repo
-sys.path.insert(0, str(REPO_ROOT))
-# Blender's user config, scripts and extensions go to a temporary directory, never the real user's.
-BLENDER_USER_RESOURCES = tempfile.mkdtemp(prefix="exclone-blender-user-")
-os.environ["BLENDER_USER_RESOURCES"] = BLENDER_USER_RESOURCES
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # exclone_addon, blender_tests
 
-import bpy  # noqa: E402  (needs the repo on sys.path first for exclone_addon below)
-
-import exclone_addon  # noqa: E402
-
-
-def pytest_unconfigure(config):
-    shutil.rmtree(BLENDER_USER_RESOURCES, ignore_errors=True)
-
-
-@pytest.fixture(scope="session")
-def exclone_operators():
-    """Registers the add-on for the whole session; yields the names of its bpy.ops.exclone operators."""
-    if not hasattr(exclone_addon, "register"):
-        pytest.fail("exclone_addon has no register(): exclone_addon/__init__.py must register the add-on")
-    exclone_addon.register()
-    operators = set(dir(bpy.ops.exclone))
-    if not operators:
-        pytest.fail("exclone_addon.register() registered no bpy.ops.exclone operators")
-    yield operators
-    exclone_addon.unregister()
-
-
-@pytest.fixture(autouse=True)
-def factory_empty_scene(exclone_operators):
-    """A fresh factory-empty scene for every test, with the add-on still registered."""
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    # The reset also resets preferences and add-ons; classes registered by hand survive it, and
-    # the tests would silently stop testing the add-on if a Blender update changed that.
-    lost = exclone_operators - set(dir(bpy.ops.exclone))
-    assert not lost, f"read_factory_settings unregistered bpy.ops.exclone.{', '.join(sorted(lost))}"
-    yield bpy.context.scene
+from blender_tests.helpers.paths import SHARED_DATA  # noqa: E402
 
 
 @pytest.fixture(scope="session")

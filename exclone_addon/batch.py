@@ -25,12 +25,11 @@ import numpy as np
 from .blender import mesh_io
 from .cli import run_main
 from .blender.operators import summary
-from .core import library
+from .core import data, library
 from .core.cloning import CloneSettings, clone_expressions
 from .core.errors import ExCloneError
 from .core.mesh import MeshError, PolyMesh, check_mesh, read_obj, write_obj
 
-DEMO_HEAD = Path(__file__).resolve().parent / "data" / "demo_head.obj"
 SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "batch_clone.py"
 IMPORTERS = {".fbx": "fbx", ".glb": "gltf", ".gltf": "gltf"}
 CONTAINERS = (".blend",) + tuple(IMPORTERS)
@@ -182,8 +181,8 @@ def load_source(spec):
     """(ExpressionLibrary, description, input paths) for the --source argument."""
     if spec is None:
         source = library.load_library()
-        description, inputs = f"bundled library {library.BUNDLED_LIBRARY.name}", [
-            library.BUNDLED_LIBRARY]
+        description, inputs = f"bundled library {data.LIBRARY_FILE.name}", [
+            data.LIBRARY_FILE]
     else:
         path, name = _split_spec(spec)
         _existing(path, "source")
@@ -214,7 +213,7 @@ def load_source(spec):
 def load_target(spec):
     """The target as a Target whose object sits in the current scene. An OBJ becomes a new
     object whose mesh keeps the file's coordinates, rotated +90 degrees about X (OBJ is Y-up)."""
-    path, name = (DEMO_HEAD, None) if spec is None else _split_spec(spec)
+    path, name = (data.DEMO_HEAD_FILE, None) if spec is None else _split_spec(spec)
     _existing(path, "target")
     suffix = path.suffix.lower()
     if path.is_dir():
@@ -425,7 +424,7 @@ def _json_value(value):
 def run(args):
     """Everything the CLI does; returns the report (a dict). Raises ExCloneError on bad input."""
     started = time.perf_counter()
-    target_file = DEMO_HEAD if args.target is None else _split_spec(args.target)[0]
+    target_file = data.DEMO_HEAD_FILE if args.target is None else _split_spec(args.target)[0]
     out = Path(args.out) if args.out else Path("out") / f"{target_file.stem}_exclone.blend"
     if out.suffix.lower() != ".blend":
         raise ExCloneError(f"--out must name a .blend file, got {out}")

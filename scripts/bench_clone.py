@@ -53,6 +53,7 @@ import scipy
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
+from exclone_addon.core import data  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
 from exclone_addon.core.mesh import (PolyMesh, boundary_edges, outward_sign,  # noqa: E402
@@ -61,7 +62,7 @@ from exclone_addon.core.proximity import SegmentSet, TriangleSurface  # noqa: E4
 from exclone_addon.core.registration import (PRESETS, Schedule,  # noqa: E402
                                              closest_valid_points, similarity_transform)
 
-DEMO_HEAD = ROOT / "exclone_addon" / "data" / "demo_head.obj"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 FACE_VERTICES = 9409           # ICT-FaceKit's "face" part is vertices [0, 9409)
 PHASES = ("landmarks", "registration", "correspondence", "transfer")
 MIB = 1024.0 * 1024.0

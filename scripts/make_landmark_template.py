@@ -11,7 +11,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template  # noqa: E402
+from exclone_addon.core.data import LANDMARK_TEMPLATE_FILE as TEMPLATE_FILE  # noqa: E402
+from exclone_addon.core.landmark_template import compute_template  # noqa: E402
 
 
 def main():

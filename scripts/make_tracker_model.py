@@ -9,7 +9,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from exclone_addon.core.live import (TRACKER_MODEL_FILE, locate_tracker_landmarks,  # noqa: E402
+from exclone_addon.core.data import TRACKER_MODEL_FILE  # noqa: E402
+from exclone_addon.core.live import (locate_tracker_landmarks,  # noqa: E402
                                      write_tracker_model)
 
 

@@ -30,7 +30,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from exclone_addon.cli import run_main  # noqa: E402
-from exclone_addon.core import capture, face_models, live  # noqa: E402
+from exclone_addon.core import capture, data, face_models, live  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
 from exclone_addon.core.tracking import Camera  # noqa: E402
 
@@ -116,7 +116,7 @@ def _file_digest(path):
 def model_versions():
     import cv2
     import tomllib
-    models = face_models.MODELS_DIR
+    models = data.MODELS_DIR
     manifest = tomllib.loads((REPO / "blender_manifest.toml").read_text())
     return {
         "exclone": manifest["version"],
@@ -124,8 +124,8 @@ def model_versions():
                      "sha256_16": _file_digest(models / face_models.DETECTOR_MODEL)},
         "landmarks": {"file": face_models.LANDMARK_MODEL, "from": "mediapipe 0.10.21",
                       "sha256_16": _file_digest(models / face_models.LANDMARK_MODEL)},
-        "tracker_model": {"file": live.TRACKER_MODEL_FILE.name, "format": live.TRACKER_MODEL_VERSION,
-                          "sha256_16": _file_digest(live.TRACKER_MODEL_FILE)},
+        "tracker_model": {"file": data.TRACKER_MODEL_FILE.name, "format": live.TRACKER_MODEL_VERSION,
+                          "sha256_16": _file_digest(data.TRACKER_MODEL_FILE)},
         "opencv": cv2.__version__, "numpy": np.__version__,
     }
 

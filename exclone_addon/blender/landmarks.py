@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 
 from ..core.errors import ExCloneError
 from ..core.landmarks import automatic_landmarks
-from ..core.mesh import valid_triangles
+from ..core.mesh import diagonal, valid_triangles
 from ..core.orientation import face_frame, vertex_symmetry_plane
 
 IDS = "exclone_landmarks"
@@ -52,7 +52,7 @@ def markers(obj):
 
 
 def _diagonal(vertices):
-    return float(np.linalg.norm(np.ptp(vertices, axis=0))) if len(vertices) else 0.0
+    return diagonal(vertices)
 
 
 def _vertices(obj):

@@ -14,7 +14,8 @@ import numpy as np
 
 from ..core.cloning import CloneSettings, fit_faces, transfer_expressions
 from ..core.errors import Cancelled, ExCloneError
-from ..core.library import BUNDLED_LIBRARY, load_library
+from ..core import data
+from ..core.library import load_library
 from ..core.mesh import PolyMesh, vertex_parts
 from . import landmarks as stored_landmarks
 from . import mesh_io, preferences
@@ -77,7 +78,7 @@ def _library(path):
 
 
 def library_source():
-    library = _library(BUNDLED_LIBRARY)
+    library = _library(data.LIBRARY_FILE)
     return Source(LIBRARY_DESCRIPTION, library.mesh, library.names, library.deltas,
                   automatic_landmarks=library.automatic_landmarks)
 

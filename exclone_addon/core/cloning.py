@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 from . import deformation
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
 from .errors import ExCloneError
-from .landmarks import automatic_landmarks
-from .mesh import check_mesh, outward_sign, valid_triangles, vertex_normals, vertex_parts
+from .landmarks import automatic_landmarks, checked_pairs
+from .mesh import checked_triangles, diagonal, outward_sign, vertex_normals, vertex_parts
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .transfer import Transfer
@@ -36,32 +36,6 @@ class CloneResult:
     registered_source: np.ndarray     # (n_source, 3) source neutral deformed onto the target
     timings: dict = field(default_factory=dict)   # seconds per phase
     quality: dict = field(default_factory=dict)   # e.g. registration_mean_distance_rel
-
-
-def _checked_mesh(mesh, what):
-    """(vertices as float64, its valid triangles); MeshError if the pipeline cannot use it."""
-    vertices = np.asarray(mesh.vertices, dtype=np.float64)
-    triangles = mesh.triangles()
-    check_mesh(vertices, triangles, what)
-    return vertices, triangles[valid_triangles(vertices, triangles)]
-
-
-def _checked_landmarks(landmarks, n_source, n_target):
-    try:
-        src = np.asarray(landmarks["source"], dtype=np.int64).ravel()
-        tgt = np.asarray(landmarks["target"], dtype=np.int64).ravel()
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ExCloneError('landmarks must be {"source": [vertex ids], "target": [vertex ids]}') from exc
-    if len(src) != len(tgt):
-        raise ExCloneError(f"landmarks: {len(src)} source ids but {len(tgt)} target ids")
-    if len(src) < 4:
-        raise ExCloneError(f"landmarks: need at least 4 pairs, got {len(src)}")
-    for ids, n, what in ((src, n_source, "source"), (tgt, n_target, "target")):
-        if ids.min() < 0 or ids.max() >= n:
-            raise ExCloneError(f"landmarks: a {what} vertex id is outside 0..{n - 1}")
-    if len(np.unique(src)) != len(src) or len(np.unique(tgt)) != len(tgt):
-        raise ExCloneError("landmarks: a vertex id is used twice")
-    return src, tgt
 
 
 def _parts_of(ids, n_vertices, triangles):
@@ -123,8 +97,8 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
         if progress:
             progress(fraction, message)
 
-    src_v, src_tris = _checked_mesh(source, "source mesh")
-    tgt_v, tgt_tris = _checked_mesh(target, "target mesh")
+    src_v, src_tris = checked_triangles(source, "source mesh")
+    tgt_v, tgt_tris = checked_triangles(target, "target mesh")
 
     # 1. Landmarks
     report(0.0, "landmarks")
@@ -150,7 +124,7 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
         tgt_lm = np.array([tgt_ids[tgt_names.index(n)] for n in common])
         landmark_names = common
     else:
-        src_lm, tgt_lm = _checked_landmarks(landmarks, len(src_v), len(tgt_v))
+        src_lm, tgt_lm = checked_pairs(landmarks, len(src_v), len(tgt_v))
         landmark_names = [f"landmark_{k}" for k in range(len(src_lm))]
     lap("landmarks")
 
@@ -162,7 +136,7 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     aligned = src_v @ rot.T * scale + shift
     src_sign = outward_sign(aligned, src_region)
     tgt_sign = outward_sign(tgt_v, tgt_region)
-    diag = float(np.linalg.norm(np.ptp(tgt_v[np.unique(tgt_region)], axis=0)))
+    diag = diagonal(tgt_v, np.unique(tgt_region))
     schedule = Schedule.preset(settings.preset)
     schedule.max_distance = settings.max_distance
     if landmarks is None:
@@ -243,8 +217,8 @@ def fit_registered(source, target, registered_source, *, settings=None):
     """
     settings = settings or CloneSettings()
     start = time.perf_counter()
-    src_v, src_region = _checked_mesh(source, "source mesh")
-    tgt_v, tgt_region = _checked_mesh(target, "target mesh")
+    src_v, src_region = checked_triangles(source, "source mesh")
+    tgt_v, tgt_region = checked_triangles(target, "target mesh")
     registered = np.asarray(registered_source, dtype=np.float64)
     if registered.shape != src_v.shape or not np.all(np.isfinite(registered)):
         raise ExCloneError(f"the registered source has shape {registered.shape} or invalid values; "
@@ -253,7 +227,7 @@ def fit_registered(source, target, registered_source, *, settings=None):
     rot, scale, shift = similarity_transform(src_v[ids], registered[ids])
     aligned = src_v @ rot.T * scale + shift
     src_sign, tgt_sign = outward_sign(aligned, src_region), outward_sign(tgt_v, tgt_region)
-    diag = float(np.linalg.norm(np.ptp(tgt_v[np.unique(tgt_region)], axis=0)))
+    diag = diagonal(tgt_v, np.unique(tgt_region))
     vertex_map, mapped, pairs, weights = _correspond(registered, src_region, tgt_v, tgt_region,
                                                      src_sign, tgt_sign, diag, settings)
     quality = {"correspondence_coverage": float(np.mean(weights > 0)),
@@ -364,7 +338,7 @@ def _follow_unsolved(result, vertices, all_tris, used_tris):
     parts = vertex_parts(len(vertices), all_tris)
     in_solved_part = np.isin(parts[orphans], parts[solved])
     result[:, orphans[in_solved_part]] = result[:, anchors[in_solved_part]]
-    reach = FOLLOW_REACH * np.linalg.norm(np.ptp(vertices[solved], axis=0))
+    reach = FOLLOW_REACH * diagonal(vertices, solved)
     for part in np.unique(parts[orphans[~in_solved_part]]):
         mine = parts[orphans] == part
         if gap[mine].min() > reach:          # away from the face (a prop): it stays

@@ -21,9 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from . import data
 from .errors import ExCloneError
 
-MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 DETECTOR_MODEL = "face_detection_short_range.tflite"
 LANDMARK_MODEL = "face_landmark.tflite"
 
@@ -176,7 +176,7 @@ def non_max_suppression(boxes, scores, keypoints, iou_threshold=NMS_IOU_THRESHOL
 class FaceDetector:
     """BlazeFace short range: faces within about two metres of the camera. Loads the model once."""
 
-    def __init__(self, models_dir=MODELS_DIR, min_score=MIN_DETECTION_SCORE, weighted_nms=True):
+    def __init__(self, models_dir=data.MODELS_DIR, min_score=MIN_DETECTION_SCORE, weighted_nms=True):
         self.net = _load_net(DETECTOR_MODEL, models_dir)
         self.min_score = min_score
         self.weighted_nms = weighted_nms
@@ -239,7 +239,7 @@ def roi_from_landmarks(landmarks):
 class FaceLandmarker:
     """FaceMesh: 468 face points in a region of interest. Loads the model once."""
 
-    def __init__(self, models_dir=MODELS_DIR):
+    def __init__(self, models_dir=data.MODELS_DIR):
         self.net = _load_net(LANDMARK_MODEL, models_dir)
         self.output_names = self.net.getUnconnectedOutLayersNames()
 

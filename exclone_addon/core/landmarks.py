@@ -8,16 +8,13 @@ through it the upper lid. Then the rest by an RBF with a linear term from a temp
 heuristic points to the mesh's, snapped to the mesh. Points that do not exist (a mask has no back
 of head, no ear tips) are left out.
 """
-import json
-from functools import lru_cache
-from pathlib import Path
-
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import find_peaks
 from scipy.spatial import cKDTree
 
+from . import data
 from .errors import ExCloneError
 from .mesh import outward_sign, vertex_normals, vertex_parts
 from .orientation import face_frame
@@ -325,54 +322,40 @@ def _place_by_normal(found, wanted_normals, q, normals, candidates, radius):
     return ids
 
 
-TEMPLATE_FILE = Path(__file__).resolve().parent.parent / "data" / "landmark_template.json"
-
-
-def compute_template():
-    """The bundled library's face as template: its canonical landmark positions by name, the
-    outward normals of the NORMAL_PLACED ones, and its own automatic landmarks (names, vertex
-    ids) found with that template: (positions, normals, (names, ids)).
-
-    Shipped precomputed in TEMPLATE_FILE (scripts/make_landmark_template.py writes it; a test
-    checks it is current): computing them costs a second on every first clone, and the library's
-    landmarks another 0.7 s on every clone from it.
-    """
-    from .library import load_library
-    lib = load_library()
-    verts = lib.mesh.vertices
-    tris = lib.mesh.triangles()
-    frame = face_frame(verts, tris)
-    ids = heuristic_landmarks(verts, tris, frame)
-    # template-only points from the iBUG annotation; points the heuristics also find keep the
-    # heuristics' version, so template and target are placed by the same rule
-    ids.update({name: int(lib.landmarks68[k]) for name, k in TEMPLATE_IBUG.items() if name not in ids})
-    q = frame.to_canonical(verts)
-    template = {name: q[v] for name, v in ids.items()}
-    outward = outward_sign(q, tris) * vertex_normals(q, tris)
-    normals = {name: outward[ids[name]] for name in NORMAL_PLACED if name in ids}
-    return template, normals, automatic_landmarks(verts, tris, frame, template, normals)
-
-
-@lru_cache(maxsize=1)
-def _shipped():
-    return json.loads(TEMPLATE_FILE.read_text())
-
-
 def _template():
-    return {name: np.array(position) for name, position in _shipped()["canonical_positions"].items()}
+    shipped = data.landmark_template()["canonical_positions"]
+    return {name: np.array(position) for name, position in shipped.items()}
 
 
 def _template_normals():
-    return {name: np.array(normal) for name, normal in _shipped()["canonical_normals"].items()}
+    shipped = data.landmark_template()["canonical_normals"]
+    return {name: np.array(normal) for name, normal in shipped.items()}
 
 
-def library_landmarks():
-    """The bundled library's automatic landmarks, shipped: (names, vertex ids); None before
-    scripts/make_landmark_template.py first wrote them."""
-    marks = _shipped().get("library_landmarks")
-    if marks is None:
-        return None
-    return list(marks), np.array(list(marks.values()), dtype=np.int64)
+# Fewer pairs than this cannot fix a similarity with any redundancy.
+MIN_PAIRS = 4
+
+
+def checked_pairs(pairs, n_source, n_target):
+    """Landmark pairs {"source": [vertex ids], "target": [vertex ids]} (from a file, a panel or a
+    caller) as two int64 arrays; ExCloneError saying what is wrong otherwise. The one check of
+    landmark ids, whoever gives them."""
+    try:
+        src = np.asarray(pairs["source"], dtype=np.int64).ravel()
+        tgt = np.asarray(pairs["target"], dtype=np.int64).ravel()
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
+        raise ExCloneError('landmarks must be {"source": [vertex ids], "target": [vertex ids]} '
+                           "with whole-number ids") from exc
+    if len(src) != len(tgt):
+        raise ExCloneError(f"landmarks: {len(src)} source ids but {len(tgt)} target ids")
+    if len(src) < MIN_PAIRS:
+        raise ExCloneError(f"landmarks: {len(src)} pairs given, at least {MIN_PAIRS} are needed")
+    for ids, n, what in ((src, n_source, "source"), (tgt, n_target, "target")):
+        if ids.min() < 0 or ids.max() >= n:
+            raise ExCloneError(f"landmarks: a {what} vertex id is outside 0..{n - 1}")
+        if len(np.unique(ids)) != len(ids):
+            raise ExCloneError(f"landmarks: a {what} vertex id is used twice")
+    return src, tgt
 
 
 def automatic_landmarks(vertices, triangles, frame=None, template=None, template_normals=None):

@@ -9,11 +9,10 @@ from pathlib import Path
 
 import numpy as np
 
+from . import data
 from .errors import ExCloneError
-from .landmarks import library_landmarks
 from .mesh import PolyMesh, read_obj
 
-BUNDLED_LIBRARY = Path(__file__).resolve().parent.parent / "data" / "ict_arkit_library.npz"
 SUPPORTED_FORMAT = 1
 
 # Apple's 52 ARKit blend shapes as the raw string values of ARFaceAnchor.BlendShapeLocation, in
@@ -62,24 +61,24 @@ class ExpressionLibrary:
 
 def load_library(path=None):
     """Load an expression library .npz (default: the bundled ICT-FaceKit ARKit library)."""
-    path = Path(path) if path is not None else BUNDLED_LIBRARY
+    path = Path(path) if path is not None else data.LIBRARY_FILE
     if not path.is_file():
         raise ExCloneError(f"expression library not found: {path}")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            version = int(data["format_version"])
+        with np.load(path, allow_pickle=False) as archive:
+            version = int(archive["format_version"])
             if version != SUPPORTED_FORMAT:
                 raise ExCloneError(f"expression library {path} has format {version}, "
                                    f"this ExClone reads format {SUPPORTED_FORMAT}")
-            vertices = data["vertices"].astype(np.float64)
-            loop_totals = data["loop_totals"].astype(np.int64)
-            loop_vertices = data["loop_vertices"].astype(np.int64)
-            names = [str(name) for name in data["names"]]
-            moving = np.unpackbits(data["delta_mask"], axis=1, count=len(vertices)).astype(bool)
-            values = data["delta_values"].astype(np.float64)
-            landmarks = data["landmarks68"].astype(np.int64)
+            vertices = archive["vertices"].astype(np.float64)
+            loop_totals = archive["loop_totals"].astype(np.int64)
+            loop_vertices = archive["loop_vertices"].astype(np.int64)
+            names = [str(name) for name in archive["names"]]
+            moving = np.unpackbits(archive["delta_mask"], axis=1, count=len(vertices)).astype(bool)
+            values = archive["delta_values"].astype(np.float64)
+            landmarks = archive["landmarks68"].astype(np.int64)
             parts = {str(name): (int(start), int(stop))
-                     for name, (start, stop) in zip(data["part_names"], data["part_ranges"])}
+                     for name, (start, stop) in zip(archive["part_names"], archive["part_ranges"])}
     except ExCloneError:
         raise
     except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, EOFError) as exc:
@@ -94,10 +93,19 @@ def load_library(path=None):
         raise ExCloneError(f"expression library {path} is corrupt (inconsistent array sizes)")
     deltas = np.zeros((len(names), n, 3))
     deltas[moving] = values
-    bundled = path.resolve() == BUNDLED_LIBRARY.resolve()
+    bundled = path.resolve() == data.LIBRARY_FILE.resolve()
     return ExpressionLibrary(PolyMesh(vertices, loop_totals, loop_vertices), names, deltas,
                              landmarks if len(landmarks) else None, parts,
                              library_landmarks() if bundled else None)
+
+
+def library_landmarks():
+    """The bundled library's automatic landmarks as shipped with the template: (names, vertex
+    ids); None before scripts/make_landmark_template.py first wrote them."""
+    marks = data.landmark_template().get("library_landmarks")
+    if marks is None:
+        return None
+    return list(marks), np.array(list(marks.values()), dtype=np.int64)
 
 
 def load_obj_folder(folder):

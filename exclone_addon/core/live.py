@@ -21,18 +21,15 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import face_models
+from . import data, face_models
 from .errors import ExCloneError
-from .library import BUNDLED_LIBRARY, load_library
-from .mesh import MeshError, PolyMesh, read_obj
+from .library import load_library
+from .mesh import MeshError, PolyMesh
 from .retarget import (SurfaceLocations, WeightSolver, locate_canonical_face, map_blendshapes,
                        refine_take)
 from .tracking import (Camera, OneEuroFilter, RotationFilter, ShapeFitter, ShapeModel,
                        calibrate_neutral, expression_shape_model)
 
-DATA_DIR = Path(__file__).resolve().parent.parent / "data"
-CANONICAL_FACE = DATA_DIR / "canonical_face.obj"
-TRACKER_MODEL_FILE = DATA_DIR / "tracker_model.npz"
 TRACKER_MODEL_VERSION = 1
 # The model's axes (canonical face: +Y up, looking along +Z, +X the subject's left) -> Blender's
 # (+Z up, looking along -Y, +X the subject's left): a quarter turn about x.
@@ -54,18 +51,18 @@ def locate_tracker_landmarks(library=None, progress=None):
     triangles = library.mesh.triangles()
     start, stop = library.parts["face"]      # ICT's skin, as its README defines it
     skin = triangles[np.all((triangles >= start) & (triangles < stop), axis=1)]
-    locations, _ = locate_canonical_face(read_obj(CANONICAL_FACE), library.mesh, skin,
+    locations, _ = locate_canonical_face(data.canonical_face(), library.mesh, skin,
                                          progress=progress)
     return locations
 
 
-def write_tracker_model(locations, path=TRACKER_MODEL_FILE):
+def write_tracker_model(locations, path=data.TRACKER_MODEL_FILE):
     np.savez_compressed(path, format_version=np.int64(TRACKER_MODEL_VERSION),
-                        library=np.str_(BUNDLED_LIBRARY.name),
+                        library=np.str_(data.LIBRARY_FILE.name),
                         corners=locations.corners.astype(np.int32), bary=locations.bary)
 
 
-def read_tracker_locations(path=TRACKER_MODEL_FILE):
+def read_tracker_locations(path=data.TRACKER_MODEL_FILE):
     if not Path(path).is_file():
         raise ExCloneError(f"tracker model {path} is missing; run scripts/make_tracker_model.py")
     with np.load(path, allow_pickle=False) as data:
@@ -85,7 +82,7 @@ class TrackerModel:
     @classmethod
     def from_locations(cls, locations, library=None):
         library = library or load_library()
-        canonical = read_obj(CANONICAL_FACE).vertices
+        canonical = data.canonical_face().vertices
         model = expression_shape_model(canonical, locations.sample(library.mesh.vertices),
                                        locations.sample(library.deltas))
         return cls(model, canonical)
@@ -132,7 +129,7 @@ class AvatarRig:
             raise ExCloneError("the avatar has no shape keys to drive")
         try:
             mesh = PolyMesh.from_faces(vertices, np.asarray(triangles))
-            locations, _ = locate_canonical_face(read_obj(CANONICAL_FACE), mesh, progress=progress)
+            locations, _ = locate_canonical_face(data.canonical_face(), mesh, progress=progress)
         except (MeshError, np.linalg.LinAlgError) as exc:
             raise ExCloneError(f"the tracker's face does not register onto the avatar ({exc})") from exc
         return cls.from_locations(vertices, deltas, names, locations)
@@ -197,7 +194,7 @@ class FaceTrackingSession:
     """
 
     def __init__(self, avatar=None, camera=None, calibration_frames=30,
-                 models_dir=face_models.MODELS_DIR, tracker_model=None, still_images=False):
+                 models_dir=data.MODELS_DIR, tracker_model=None, still_images=False):
         self.avatar = avatar
         self.camera = camera
         self._fixed_camera = camera is not None

@@ -163,6 +163,22 @@ def valid_triangles(vertices, triangles, rel_eps=1e-12):
     return distinct & (area > rel_eps * max(scale, 1e-30) ** 2)
 
 
+def diagonal(vertices, ids=None):
+    """Length of the bounding-box diagonal of the vertices (of `ids` only, if given): the one
+    scale every relative tolerance and figure in ExClone is measured against."""
+    points = vertices if ids is None else vertices[ids]
+    return float(np.linalg.norm(np.ptp(points, axis=0))) if len(points) else 0.0
+
+
+def checked_triangles(mesh, what="mesh"):
+    """(vertices as float64, its valid triangles) of a PolyMesh; MeshError with a user-facing
+    message if the pipeline cannot use it."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    triangles = mesh.triangles()
+    check_mesh(vertices, triangles, what)
+    return vertices, triangles[valid_triangles(vertices, triangles)]
+
+
 def check_mesh(vertices, triangles, what="mesh"):
     """Raise MeshError with a user-facing message for meshes the pipeline cannot use."""
     if len(vertices) == 0 or len(triangles) == 0:

@@ -21,7 +21,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .errors import ExCloneError
-from .mesh import boundary_vertices, triangle_areas, triangle_normals
+from .mesh import boundary_vertices, diagonal, triangle_areas, triangle_normals
 from .proximity import TriangleSurface
 
 _MANUAL = "place the landmarks by hand (or give --landmarks)"
@@ -137,9 +137,9 @@ def _protrusion(samples, tree, direction, candidates, radius):
 def face_frame(vertices, triangles):
     """The FaceFrame of a face or head mesh (see module docstring). Raises ExCloneError if unsure."""
     used = np.unique(triangles)
-    diagonal = float(np.linalg.norm(np.ptp(vertices[used], axis=0)))
+    size = diagonal(vertices, used)
     samples, normals = surface_samples(vertices, triangles)
-    normal, offset, sym_error = symmetry_plane(samples, diagonal, TriangleSurface(vertices, triangles))
+    normal, offset, sym_error = symmetry_plane(samples, size, TriangleSurface(vertices, triangles))
     if sym_error > 0.02:
         raise ExCloneError(
             f"could not find the face's left-right symmetry (mirror mismatch {100 * sym_error:.1f}% "
@@ -147,10 +147,10 @@ def face_frame(vertices, triangles):
 
     # Forward: the most protruding extreme direction within the symmetry plane. Tips next to an
     # open border (a mask's edge, a neck cut) do not count: they stick out of nothing.
-    candidates = np.abs(samples @ normal - offset) < 0.03 * diagonal
+    candidates = np.abs(samples @ normal - offset) < 0.03 * size
     border = vertices[boundary_vertices(triangles)]
     if len(border):
-        candidates &= cKDTree(border).query(samples)[0] > 0.05 * diagonal
+        candidates &= cKDTree(border).query(samples)[0] > 0.05 * size
     candidates = np.flatnonzero(candidates)
     if len(candidates) < 10:
         raise ExCloneError(f"the face's profile is too small to find its nose; {_MANUAL}")
@@ -158,14 +158,14 @@ def face_frame(vertices, triangles):
     angles = np.radians(np.arange(0, 360, 1.0))
     directions = np.cos(angles)[:, None] * basis[:, 0] + np.sin(angles)[:, None] * basis[:, 1]
     tree = cKDTree(samples)
-    radius = 0.08 * diagonal
+    radius = 0.08 * size
     scores = np.array([_protrusion(samples, tree, d, candidates, radius)[0] for d in directions])
     smooth = np.convolve(np.r_[scores[-7:], scores, scores[:7]], np.ones(15) / 15, mode="valid")
     forward = directions[np.argmax(smooth)]
     # Refine continuously (a grid's argmax would differ by a degree or two between rotated
     # copies): forward is the mean outward normal of the face around the nose tip.
     _, tip = _protrusion(samples, tree, forward, candidates, radius)
-    around = tree.query_ball_point(samples[tip], 0.25 * diagonal)
+    around = tree.query_ball_point(samples[tip], 0.25 * size)
     outward = normals[around] * np.sign(normals[around] @ forward)[:, None]
     mean_normal = outward.sum(axis=0)
     mean_normal -= (mean_normal @ normal) * normal
@@ -187,7 +187,7 @@ def face_frame(vertices, triangles):
     rotation = np.stack([left, up, forward], axis=1)
     origin = samples.mean(axis=0)
     origin = origin - (origin @ normal - offset) * normal  # on the symmetry plane
-    return FaceFrame(rotation, origin, diagonal, float(sym_error))
+    return FaceFrame(rotation, origin, size, float(sym_error))
 
 
 def vertex_symmetry_plane(vertices, triangles, max_steps=100):

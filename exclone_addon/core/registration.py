@@ -15,7 +15,7 @@ from scipy.spatial.transform import Rotation
 from scipy.sparse.linalg import splu
 
 from . import deformation
-from .mesh import boundary_edges, triangle_areas, vertex_normals
+from .mesh import boundary_edges, diagonal, triangle_areas, vertex_normals
 from .proximity import SegmentSet, TriangleSurface, interpolate
 
 # Closest-point weights per step after the landmark-only solve; w_S = 1, w_I = 0.001 (the thesis').
@@ -164,7 +164,7 @@ def register(source_vertices, source_triangles, target_vertices, target_triangle
     landmark_positions = np.asarray(landmark_positions) / unit
     n = len(source_vertices)
     t = len(source_triangles)
-    diag = float(np.linalg.norm(np.ptp(target_vertices[np.unique(target_triangles)], axis=0)))
+    diag = diagonal(target_vertices, np.unique(target_triangles))
     region = np.unique(source_triangles)
 
     grad, _ = deformation.gradient_operator(source_vertices, source_triangles, formulation)

@@ -1,16 +1,16 @@
 """The pipeline on awkward but legal meshes: degenerate triangles, duplicate vertices, an
 unreferenced vertex, a separate part the source does not cover, quads and n-gons."""
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from exclone_addon.core import data
 from exclone_addon.core.cloning import clone_expressions
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj
 
-DEMO_HEAD = Path(__file__).resolve().parents[1] / "exclone_addon" / "data" / "demo_head.obj"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 NAMES = ("jawOpen", "eyeBlink_L")
 
 

@@ -11,7 +11,7 @@ import pytest
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.retarget import (SurfaceLocations, WeightSolver, locate_points,
                                          map_blendshapes, refine_take)
-from test_tracking import CALIBRATION_FRAMES, ict_rig, synthetic_take, tracked_take
+from blender_tests.helpers.takes import CALIBRATION_FRAMES, ict_rig, synthetic_take, tracked_take
 
 
 def closed_loop(outlier_fraction=0.0, shapes=None):

@@ -19,7 +19,7 @@ from skimage import data
 from exclone_addon.blender import live, live_panel, mesh_io
 from exclone_addon.core import capture
 from exclone_addon.core.library import load_library
-from test_operators import RecordingLayout
+from blender_tests.helpers.layout import RecordingLayout
 
 KEYS = ["jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L",
         "browDown_R", "mouthFunnel", "mouthPucker", "cheekSquint_L"]

@@ -5,21 +5,20 @@ Meshes: the bundled library head (ICT-FaceKit) and the bundled demo head (MakeHu
 in the repo, and the hand-checked fixtures (blender_tests/fixtures/) were made on the same files.
 """
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from blender_tests import ground_truth as gt
+from blender_tests.helpers.paths import FIXTURES
+from blender_tests.helpers import ground_truth as gt
+from exclone_addon.core import data
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.landmarks import HEURISTIC, NAMES, automatic_landmarks
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import read_obj
 
-REPO = Path(__file__).resolve().parents[1]
-FIXTURES = Path(__file__).resolve().parent / "fixtures"
-DEMO_HEAD = REPO / "exclone_addon" / "data" / "demo_head.obj"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 
 # Well-defined points a rotated copy must find again. Tolerance: 1% of the bounding-box diagonal
 # (four of the detector's 0.25% profile bins; about twice what two careful annotators disagree on
@@ -233,8 +232,9 @@ def test_automatic_landmark_near_hand_checked(fixtures, fixture_errors, head, na
 
 def test_shipped_landmark_template_is_current():
     # the template file is derived data: stale after a heuristic or library change
-    from exclone_addon.core.landmarks import TEMPLATE_FILE, compute_template
-    shipped = json.loads(TEMPLATE_FILE.read_text())
+    from exclone_addon.core.data import LANDMARK_TEMPLATE_FILE
+    from exclone_addon.core.landmark_template import compute_template
+    shipped = json.loads(LANDMARK_TEMPLATE_FILE.read_text())
     fresh, normals, (names, ids) = compute_template()
     positions = shipped["canonical_positions"]
     assert set(positions) == set(fresh), "run scripts/make_landmark_template.py"

@@ -1,19 +1,19 @@
 """The bundled ICT-FaceKit library, the OBJ-folder loader and the ARKit renaming."""
 import json
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
 
+from blender_tests.helpers.paths import REPO_ROOT
+from exclone_addon.core import data
 from exclone_addon.core.errors import ExCloneError
-from exclone_addon.core.library import (ARKIT_BLENDSHAPES, BUNDLED_LIBRARY, arkit_blendshapes,
+from exclone_addon.core.library import (ARKIT_BLENDSHAPES, arkit_blendshapes,
                                         load_library, load_obj_folder)
 from exclone_addon.core.mesh import PolyMesh, read_obj, write_obj
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED_ICT = REPO.parent / "shared" / "data" / "ict-facekit"
-DATA = REPO / "exclone_addon" / "data"
+SHARED_ICT = REPO_ROOT.parent / "shared" / "data" / "ict-facekit"
+DATA = REPO_ROOT / "exclone_addon" / "data"
 # scripts/make_library.py drops deltas of at most 1e-6 cm (measured round-trip error: 1e-6 cm).
 DELTA_TOLERANCE = 1.01e-6
 ICT_EXTRAS = {"cheekRaiser_L", "cheekRaiser_R", "PupilDilate_L", "PupilDilate_R"}
@@ -58,7 +58,7 @@ def test_bundled_parts_tile_the_mesh(library):
 
 
 def test_bundled_file_size():
-    assert BUNDLED_LIBRARY.stat().st_size < 8e6
+    assert data.LIBRARY_FILE.stat().st_size < 8e6
 
 
 def test_bundled_licences_and_copies_present():

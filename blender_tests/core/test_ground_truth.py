@@ -7,7 +7,7 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from blender_tests import ground_truth as gt
+from blender_tests.helpers import ground_truth as gt
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import triangle_areas, triangle_normals
 

@@ -4,19 +4,19 @@ import importlib.util
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import bpy
 import cv2
 import numpy as np
 import pytest
 
+from blender_tests.helpers.paths import REPO_ROOT
 from exclone_addon.blender import mesh_io
 from exclone_addon.core.face_models import IBUG68_FROM_MEDIAPIPE
 from exclone_addon.core.library import load_library
-from test_live import astronaut, astronaut_frame
+from blender_tests.helpers.takes import astronaut, astronaut_frame
 
-SCRIPT = Path(__file__).resolve().parent.parent / "scripts" / "track_video.py"
+SCRIPT = REPO_ROOT / "scripts" / "track_video.py"
 AVATAR_SHAPES = ("jawOpen", "eyeBlink_L", "mouthSmile_L", "browInnerUp_L")
 
 

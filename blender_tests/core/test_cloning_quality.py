@@ -12,21 +12,19 @@
    fixture vertices.
 """
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-from blender_tests import ground_truth as gt
-from exclone_addon.core import deformation
+from blender_tests.helpers.paths import FIXTURES
+from blender_tests.helpers import ground_truth as gt
+from exclone_addon.core import data, deformation
 from exclone_addon.core.cloning import (CloneSettings, clone_expressions, fit_registered,
                                         transfer_expressions)
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj
 
-REPO = Path(__file__).resolve().parents[1]
-FIXTURES = Path(__file__).resolve().parent / "fixtures"
-DEMO_HEAD = REPO / "exclone_addon" / "data" / "demo_head.obj"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 
 MEAN_ERROR_BAR = 0.05
 MAX_ERROR_BAR = 0.15

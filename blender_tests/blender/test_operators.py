@@ -8,7 +8,6 @@ with unchanged inputs come from the operators' cache, which tests clear where a 
 import json
 import re
 import time
-from pathlib import Path
 
 import bpy
 import numpy as np
@@ -16,16 +15,18 @@ from scipy.spatial.distance import pdist
 import pytest
 
 import exclone_addon
+from blender_tests.helpers.paths import REPO_ROOT
+from blender_tests.helpers.layout import RecordingLayout
+from exclone_addon.core import data
 from exclone_addon.blender import landmarks as stored_landmarks
 from exclone_addon.blender import mesh_io, panel, preferences, workflow
 from exclone_addon.core.errors import Cancelled
 from exclone_addon.core.library import ARKIT_BLENDSHAPES, load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj
 
-REPO = Path(__file__).resolve().parent.parent
-DEMO_HEAD = REPO / "exclone_addon" / "data" / "demo_head.obj"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 # Hand-checked vertices of the demo head (it is the fixture's MakeHuman mesh, same vertex ids).
-FIXTURE = json.loads((REPO / "blender_tests" / "fixtures" / "makehuman_landmarks.json").read_text())
+FIXTURE = json.loads((REPO_ROOT / "blender_tests" / "fixtures" / "makehuman_landmarks.json").read_text())
 VERTEX = {name: entry["vertex"] for name, entry in FIXTURE["landmarks"].items()}
 OPERATORS = {"auto_landmarks", "clear_landmarks", "clone_expressions", "generate_arkit_shapes",
              "mirror_landmarks", "refresh_expressions", "register_faces", "remove_preview",
@@ -133,51 +134,6 @@ def test_default_preset_comes_from_the_preferences_once_enabled():
 
 
 # -- the panel ------------------------------------------------------------------------------------
-
-class RecordingLayout:
-    """Stands in for a UILayout (which only exists while Blender draws a region): the panel's
-    real draw code runs on it, and every call is checked against the real RNA and recorded."""
-
-    def __init__(self, log):
-        self.log = log
-
-    def _sub(self, *args, **kwargs):
-        return RecordingLayout(self.log)
-
-    row = column = box = split = _sub
-
-    def label(self, text="", icon='NONE'):
-        self.log.append(("label", text))
-
-    def separator(self, **kwargs):
-        pass
-
-    def prop(self, data, name, **kwargs):
-        assert name in data.bl_rna.properties, f"{data} has no property {name}"
-        self.log.append(("prop", name))
-
-    def operator(self, idname, text="", icon='NONE'):
-        module, name = idname.split(".")
-        op = getattr(getattr(bpy.ops, module), name)
-        self.log.append(("operator", idname))
-        return OperatorProperties(op.get_rna_type())
-
-    def template_list(self, list_type, list_id, data, name, active_data, active_name, rows=5):
-        assert hasattr(bpy.types, list_type)
-        assert name in data.bl_rna.properties and active_name in active_data.bl_rna.properties
-        self.log.append(("list", name))
-
-
-class OperatorProperties:
-    def __init__(self, rna):
-        object.__setattr__(self, "rna", rna)
-
-    def __setattr__(self, name, value):
-        prop = self.rna.properties.get(name)
-        assert prop is not None, f"{self.rna.identifier} has no property {name}"
-        if prop.type == 'ENUM':
-            assert value in prop.enum_items.keys(), f"{name}: {value!r} is not an option"
-
 
 def draw_panel():
     log = []

@@ -15,16 +15,17 @@ import cv2
 import numpy as np
 import pytest
 
+from blender_tests.helpers.paths import REPO_ROOT
+from exclone_addon.core import data
 from exclone_addon import batch
 from exclone_addon.blender import mesh_io
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj, write_obj
 
-REPO = Path(__file__).resolve().parent.parent
-SCRIPT = REPO / "scripts" / "batch_clone.py"
-DATA = REPO / "exclone_addon" / "data"
-DEMO_HEAD = DATA / "demo_head.obj"
+SCRIPT = REPO_ROOT / "scripts" / "batch_clone.py"
+DATA = REPO_ROOT / "exclone_addon" / "data"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 
 
 def run_cli(*args, cwd):

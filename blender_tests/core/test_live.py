@@ -15,7 +15,6 @@ import cv2
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-from skimage import data
 
 from exclone_addon.core import live
 from exclone_addon.core.errors import ExCloneError
@@ -23,7 +22,8 @@ from exclone_addon.core.face_models import IBUG68_FROM_MEDIAPIPE
 from exclone_addon.core.live import (MODEL_TO_BLENDER, AvatarRig, FaceTrackingSession,
                                      TrackerModel, calibrate_camera, load_tracker_model)
 from exclone_addon.core.tracking import FRONTAL, Camera
-from test_tracking import CALIBRATION_FRAMES, FPS, ict_rig, synthetic_take
+from blender_tests.helpers.takes import (ASTRONAUT_FRAMES, CALIBRATION_FRAMES, FPS, astronaut,
+                                         astronaut_frame, astronaut_motion, ict_rig, synthetic_take)
 
 
 @functools.lru_cache(maxsize=1)
@@ -44,32 +44,6 @@ def session_on_synthetic_take():
                                   tracker_model=TrackerModel.from_locations(ict_rig().locations))
     results = [session.step_landmarks(points, k / FPS) for k, points in enumerate(take.points)]
     return take, session, results
-
-
-# The astronaut's face centre in skimage's 512x512 photograph, moved to the 640x480 frame's centre.
-FACE_CENTRE = (224.0, 135.0)
-ASTRONAUT_FRAMES = 60
-
-
-@functools.lru_cache(maxsize=1)
-def astronaut():
-    return cv2.cvtColor(data.astronaut(), cv2.COLOR_RGB2BGR)
-
-
-def astronaut_motion(k):
-    """Frame k's known 2x3 motion of the photograph: a turn of up to 15 degrees, scale 0.8-1.2,
-    shifts of up to 80 px (peak speed about 250 px/s at 30 fps)."""
-    t = k / ASTRONAUT_FRAMES
-    matrix = cv2.getRotationMatrix2D(FACE_CENTRE, 15 * np.sin(2 * np.pi * t),
-                                     1 + 0.2 * np.sin(2 * np.pi * 1.5 * t + 1))
-    matrix[:, 2] += (320 - FACE_CENTRE[0] + 80 * np.sin(2 * np.pi * t + 0.5),
-                     240 - FACE_CENTRE[1] + 50 * np.sin(4 * np.pi * t))
-    return matrix
-
-
-def astronaut_frame(k):
-    return cv2.warpAffine(astronaut(), astronaut_motion(k), (640, 480), flags=cv2.INTER_LINEAR,
-                          borderMode=cv2.BORDER_REPLICATE)
 
 
 @functools.lru_cache(maxsize=1)

@@ -4,13 +4,12 @@ import os
 import subprocess
 import sys
 import zipfile
-from pathlib import Path
 
 import pytest
+from blender_tests.helpers.paths import REPO_ROOT
 from packaging.tags import cpython_tags
 from packaging.utils import parse_wheel_filename
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 
 LINUX_PLATFORMS = ["manylinux_2_28_x86_64"] + [f"manylinux_2_{v}_x86_64" for v in range(27, 16, -1)] + [
     "manylinux2014_x86_64"]

@@ -4,7 +4,6 @@ An affine map has the same gradient on every triangle, so the operators can be c
 without any reference implementation: augmented gradient = A, reduced gradient = A projected on
 the triangle's plane (A V V^+).
 """
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,13 +11,13 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
-from exclone_addon.core import deformation
+from exclone_addon.core import data, deformation
 from exclone_addon.core.mesh import read_obj, triangle_normals, vertex_adjacency
 from exclone_addon.core.proximity import TriangleSurface, closest_points_on_triangles
 from exclone_addon.core.registration import ReusedOrderingSolver
 from exclone_addon.core.transfer import Transfer
 
-DEMO_HEAD = Path(__file__).resolve().parents[1] / "exclone_addon" / "data" / "demo_head.obj"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 FORMULATIONS = deformation.FORMULATIONS
 
 

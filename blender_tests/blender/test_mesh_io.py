@@ -1,14 +1,14 @@
 """Blender objects <-> core arrays (exclone_addon.blender.mesh_io) on the bundled demo head."""
-from pathlib import Path
 
 import bpy
 import numpy as np
 import pytest
 
+from exclone_addon.core import data
 from exclone_addon.blender import mesh_io
 from exclone_addon.core.mesh import MeshError, read_obj
 
-DEMO_HEAD = Path(__file__).resolve().parent.parent / "exclone_addon" / "data" / "demo_head.obj"
+DEMO_HEAD = data.DEMO_HEAD_FILE
 
 
 @pytest.fixture
