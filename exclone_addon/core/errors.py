@@ -7,3 +7,12 @@ class ExCloneError(ValueError):
 
 class Cancelled(Exception):
     """Raised from a progress callback to stop a long run; nothing is written."""
+
+
+def user_message(error):
+    """The one line a user is shown for an exception: an ExCloneError's own words, anything else
+    (a bug, never the user's fault) named as an internal error."""
+    text = " ".join(str(error).split())
+    if isinstance(error, ExCloneError):
+        return text
+    return f"internal error ({type(error).__name__}: {text})"

@@ -46,6 +46,7 @@ class ExpressionLibrary:
     parts: dict = field(default_factory=dict)        # name -> (start, stop) vertex range
     # its automatic landmarks found once, (names, vertex ids): shipped for the bundled library
     automatic_landmarks: tuple = None
+    description: str = ""      # what it is, for reports: "the built-in ARKit library", a path
 
     def subset(self, names):
         """The library restricted to `names`, in that order."""
@@ -56,7 +57,7 @@ class ExpressionLibrary:
                                f"available: {', '.join(self.names)}")
         rows = [index[name] for name in names]
         return ExpressionLibrary(self.mesh, list(names), self.deltas[rows], self.landmarks68,
-                                 dict(self.parts), self.automatic_landmarks)
+                                 dict(self.parts), self.automatic_landmarks, self.description)
 
 
 def load_library(path=None):
@@ -96,7 +97,8 @@ def load_library(path=None):
     bundled = path.resolve() == data.LIBRARY_FILE.resolve()
     return ExpressionLibrary(PolyMesh(vertices, loop_totals, loop_vertices), names, deltas,
                              landmarks if len(landmarks) else None, parts,
-                             library_landmarks() if bundled else None)
+                             library_landmarks() if bundled else None,
+                             "the built-in ARKit library" if bundled else str(path))
 
 
 def library_landmarks():
@@ -129,7 +131,7 @@ def load_obj_folder(folder):
             raise ExCloneError(f"{path.name} has {len(vertices)} vertices but neutral.obj has {n}; "
                                "every expression OBJ must have the neutral's vertices in its order")
         deltas[i] = vertices - neutral.vertices
-    return ExpressionLibrary(neutral, [p.stem for p in paths], deltas)
+    return ExpressionLibrary(neutral, [p.stem for p in paths], deltas, description=str(folder))
 
 
 def arkit_blendshapes(names, deltas):
