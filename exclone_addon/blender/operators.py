@@ -12,27 +12,13 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..core.errors import Cancelled, ExCloneError
 from ..core.library import arkit_blendshapes
+from ..core.reports import summary
 from . import landmarks as stored_landmarks
 from . import mesh_io, workflow
 from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
 
 PREVIEW_TAG = "exclone_preview"
 PREVIEW_NAME = "ExClone registration preview"
-
-
-def summary(added, replaced, skipped, seconds, quality):
-    """One-line report, e.g. "52 shape keys added in 1.8 s, fit error 0.2%"."""
-    parts = [f"{len(added)} shape keys added"]
-    if replaced:
-        parts.append(f"{len(replaced)} replaced")
-    if skipped:
-        shown = ", ".join(skipped[:3]) + (", ..." if len(skipped) > 3 else "")
-        parts.append(f"{len(skipped)} skipped (already exist: {shown})")
-    text = ", ".join(parts) + f" in {seconds:.1f} s"
-    fit = quality.get("registration_mean_distance_rel")
-    if fit is not None:
-        text += f", fit error {100 * fit:.2g}%"
-    return text
 
 
 def _poll_target(cls, context):

@@ -1,0 +1,20 @@
+"""The one-line reports a user reads after cloning (operator reports, command-line output)."""
+
+
+def fit_error(quality):
+    """"fit error 0.2%" from a clone's quality dict, or "" if it has no registration error."""
+    fit = quality.get("registration_mean_distance_rel")
+    return "" if fit is None else f"fit error {100 * fit:.2g}%"
+
+
+def summary(added, replaced, skipped, seconds, quality):
+    """One-line report, e.g. "52 shape keys added in 1.8 s, fit error 0.2%"."""
+    parts = [f"{len(added)} shape keys added"]
+    if replaced:
+        parts.append(f"{len(replaced)} replaced")
+    if skipped:
+        shown = ", ".join(skipped[:3]) + (", ..." if len(skipped) > 3 else "")
+        parts.append(f"{len(skipped)} skipped (already exist: {shown})")
+    text = ", ".join(parts) + f" in {seconds:.1f} s"
+    fit = fit_error(quality)
+    return f"{text}, {fit}" if fit else text
