@@ -336,13 +336,20 @@ def _template_normals():
 MIN_PAIRS = 4
 
 
+def _whole_numbers(values):
+    """int64 ids; ValueError for anything but whole numbers (4.5 or "7" is no vertex id)."""
+    ids = np.asarray(values).ravel()
+    if len(ids) and ids.dtype.kind not in "iu":
+        raise ValueError(f"not whole numbers: {ids.dtype}")
+    return ids.astype(np.int64)
+
+
 def checked_pairs(pairs, n_source, n_target):
     """Landmark pairs {"source": [vertex ids], "target": [vertex ids]} (from a file, a panel or a
     caller) as two int64 arrays; ExCloneError saying what is wrong otherwise. The one check of
     landmark ids, whoever gives them."""
     try:
-        src = np.asarray(pairs["source"], dtype=np.int64).ravel()
-        tgt = np.asarray(pairs["target"], dtype=np.int64).ravel()
+        src, tgt = _whole_numbers(pairs["source"]), _whole_numbers(pairs["target"])
     except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise ExCloneError('landmarks must be {"source": [vertex ids], "target": [vertex ids]} '
                            "with whole-number ids") from exc
