@@ -3,7 +3,7 @@
     .venv/bin/python scripts/bench_track.py [--frames N] [--out BENCH.json]
 
 The take: skimage's astronaut photograph moved by smooth known translations, rotations and
-scales (as in blender_tests/test_live.py). The avatar: the bundled ICT-FaceKit head with its 57
+scales (as in blender_tests/helpers/takes.py). The avatar: the bundled ICT-FaceKit head with its 57
 ARKit shape keys, as a Blender mesh object (bpy module); the tracker's points are located on it
 by the shipped tracker model, so no registration runs here. Per frame: track (or detect),
 landmarks, shape fit, filters, weights, and the weights written into the object's shape-key
@@ -26,8 +26,10 @@ from skimage import data
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from exclone_addon.blender import mesh_io  # noqa: E402
-from exclone_addon.core import live  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
+from exclone_addon.core.retarget import AvatarRig  # noqa: E402
+from exclone_addon.core.session import STAGES, FaceTrackingSession  # noqa: E402
+from exclone_addon.core.tracker_model import read_tracker_locations  # noqa: E402
 
 FACE_CENTRE = (224.0, 135.0)
 CALIBRATION_FRAMES = 30
@@ -52,6 +54,48 @@ def avatar_object(library):
     return obj
 
 
+def summary(values):
+    values = np.asarray(values)
+    return {"median_ms": round(float(np.median(values)), 3),
+            "p95_ms": round(float(np.percentile(values, 95)), 3)}
+
+
+def run_take(session, frames, key_blocks, names):
+    """Steps the session through the frames, writing the weights into the shape keys; returns
+    (per-stage times of the frames after calibration, Blender evaluation times, calibration ms,
+    frames without a face)."""
+    rows, evaluate_ms, lost, calibrate_ms = [], [], 0, 0.0
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    for k, image in enumerate(frames):
+        start = time.perf_counter()
+        result = session.step(image, k / 30.0)
+        write_start = time.perf_counter()
+        if result.weights is not None:
+            for block, name in zip(key_blocks, names):
+                block.value = result.weights[name]
+        end = time.perf_counter()
+        lost += not result.found
+        if k >= CALIBRATION_FRAMES:
+            stages = {name: result.stage_ms.get(name, 0.0) for name in STAGES}
+            stages["write"] = 1000 * (end - write_start)
+            stages["step"] = 1000 * (end - start)
+            rows.append(stages)
+            update = time.perf_counter()
+            depsgraph.update()
+            evaluate_ms.append(1000 * (time.perf_counter() - update))
+        elif "calibrate" in result.stage_ms:
+            calibrate_ms = result.stage_ms["calibrate"]
+    return rows, evaluate_ms, calibrate_ms, lost
+
+
+def machine():
+    return {"cpus": os.cpu_count(), "python": platform.python_version(),
+            "numpy": np.__version__, "opencv": cv2.__version__,
+            "blender": bpy.app.version_string,
+            "blas_threads": {name: os.environ.get(name) for name in
+                             ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}}
+
+
 def main(argv):
     parser = argparse.ArgumentParser(prog="bench_track.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", type=int, default=150, help="frames in the take (default 150)")
@@ -62,8 +106,8 @@ def main(argv):
 
     clock = time.perf_counter()
     library = load_library()
-    rig = live.AvatarRig.from_locations(library.mesh.vertices, library.deltas, library.names,
-                                        live.read_tracker_locations())
+    rig = AvatarRig.from_locations(library.mesh.vertices, library.deltas, library.names,
+                                   read_tracker_locations())
     obj = avatar_object(library)
     key_blocks = [obj.data.shape_keys.key_blocks[name] for name in rig.names]
     setup_s = time.perf_counter() - clock
@@ -71,34 +115,9 @@ def main(argv):
     frames = [moved_astronaut(photo, k, args.frames) for k in range(args.frames)]
 
     clock = time.perf_counter()
-    session = live.FaceTrackingSession(avatar=rig, calibration_frames=CALIBRATION_FRAMES)
+    session = FaceTrackingSession(avatar=rig, calibration_frames=CALIBRATION_FRAMES)
     session_s = time.perf_counter() - clock
-    rows, evaluate_ms, lost = [], [], 0
-    depsgraph = bpy.context.evaluated_depsgraph_get()
-    for k, image in enumerate(frames):
-        start = time.perf_counter()
-        result = session.step(image, k / 30.0)
-        write_start = time.perf_counter()
-        if result.weights is not None:
-            for block, name in zip(key_blocks, rig.names):
-                block.value = result.weights[name]
-        end = time.perf_counter()
-        lost += not result.found
-        if k >= CALIBRATION_FRAMES:
-            stages = {name: result.stage_ms.get(name, 0.0) for name in ("detect", "landmarks", "fit", "weights")}
-            stages["write"] = 1000 * (end - write_start)
-            stages["step"] = 1000 * (end - start)
-            rows.append(stages)
-            update = time.perf_counter()
-            depsgraph.update()
-            evaluate_ms.append(1000 * (time.perf_counter() - update))
-        elif "calibrate" in result.stage_ms:
-            calibrate_ms = result.stage_ms["calibrate"]
-
-    def summary(values):
-        values = np.asarray(values)
-        return {"median_ms": round(float(np.median(values)), 3),
-                "p95_ms": round(float(np.percentile(values, 95)), 3)}
+    rows, evaluate_ms, calibrate_ms, lost = run_take(session, frames, key_blocks, rig.names)
 
     report = {
         "benchmark": "bench_track",
@@ -110,11 +129,7 @@ def main(argv):
         "one_off_s": {"avatar_setup": round(setup_s, 3), "session_start": round(session_s, 3),
                       "calibration": round(calibrate_ms / 1000, 3)},
         "blender_evaluation_ms": summary(evaluate_ms),
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version(),
-                    "numpy": np.__version__, "opencv": cv2.__version__,
-                    "blender": bpy.app.version_string,
-                    "blas_threads": {name: os.environ.get(name) for name in
-                                     ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}},
+        "machine": machine(),
     }
     text = json.dumps(report, indent=1)
     print(text)

@@ -1,7 +1,7 @@
 """Write exclone_addon/data/tracker_model.npz: where the canonical face's 468 points lie on the
-bundled ICT-FaceKit face (a registration, about 5 s), from which core.live builds the tracker's
-shape model in well under a second. Run it after changing the bundled library, the canonical
-face or the cloning engine; blender_tests/test_live.py checks it is current.
+bundled ICT-FaceKit face (a registration, about 5 s), from which core.tracker_model builds the
+tracker's shape model in well under a second. Run it after changing the bundled library, the
+canonical face or the cloning engine; blender_tests/core/test_live.py checks it is current.
 
     .venv/bin/python scripts/make_tracker_model.py
 """
@@ -10,8 +10,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from exclone_addon.core.data import TRACKER_MODEL_FILE  # noqa: E402
-from exclone_addon.core.live import (locate_tracker_landmarks,  # noqa: E402
-                                     write_tracker_model)
+from exclone_addon.core.tracker_model import (locate_tracker_landmarks,  # noqa: E402
+                                              write_tracker_model)
 
 
 def main():

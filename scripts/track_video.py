@@ -30,7 +30,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 from exclone_addon.cli import run_main  # noqa: E402
-from exclone_addon.core import capture, data, face_models, live  # noqa: E402
+from exclone_addon.core import capture, data, face_models, retarget, tracker_model  # noqa: E402
+from exclone_addon.core.session import FaceTrackingSession  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
 from exclone_addon.core.tracking import Camera  # noqa: E402
 
@@ -104,7 +105,7 @@ def load_avatar(spec):
     except ExCloneError as exc:
         # the batch loader calls what it reads a "source"
         raise ExCloneError("--avatar " + str(exc).removeprefix("source ")) from None
-    rig = live.AvatarRig.from_arrays(source.mesh.vertices, source.mesh.triangles(), source.deltas,
+    rig = retarget.AvatarRig.from_arrays(source.mesh.vertices, source.mesh.triangles(), source.deltas,
                                      source.names)
     return rig, description
 
@@ -124,7 +125,7 @@ def model_versions():
                      "sha256_16": _file_digest(models / face_models.DETECTOR_MODEL)},
         "landmarks": {"file": face_models.LANDMARK_MODEL, "from": "mediapipe 0.10.21",
                       "sha256_16": _file_digest(models / face_models.LANDMARK_MODEL)},
-        "tracker_model": {"file": data.TRACKER_MODEL_FILE.name, "format": live.TRACKER_MODEL_VERSION,
+        "tracker_model": {"file": data.TRACKER_MODEL_FILE.name, "format": tracker_model.TRACKER_MODEL_VERSION,
                           "sha256_16": _file_digest(data.TRACKER_MODEL_FILE)},
         "opencv": cv2.__version__, "numpy": np.__version__,
     }
@@ -163,9 +164,9 @@ def run(args):
         camera = None
         if any(v is not None for v in given.values()) or not args.still_images:
             camera = Camera.from_image_size(width, height, **given)
-        session = live.FaceTrackingSession(avatar=avatar, camera=camera,
-                                           calibration_frames=args.calibration_frames,
-                                           still_images=args.still_images)
+        session = FaceTrackingSession(avatar=avatar, camera=camera,
+                                      calibration_frames=args.calibration_frames,
+                                      still_images=args.still_images)
         limit = args.frames or (DEFAULT_CAMERA_FRAMES if source.is_live else None)
         start = time.perf_counter()
         while limit is None or len(records) < limit:

@@ -16,10 +16,11 @@ import pytest
 from bpy_extras import anim_utils
 from skimage import data
 
-from exclone_addon.blender import live, live_panel, mesh_io
+from exclone_addon.blender import camera_preview, live_panel, mesh_io, webcam_take
 from exclone_addon.core import capture
 from exclone_addon.core.library import load_library
 from blender_tests.helpers.layout import RecordingLayout
+from blender_tests.helpers.takes import astronaut_frame
 
 KEYS = ["jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "mouthSmile_R", "browInnerUp_L",
         "browDown_R", "mouthFunnel", "mouthPucker", "cheekSquint_L"]
@@ -27,8 +28,9 @@ FACE_CENTRE = (224.0, 130.0)     # between the astronaut's eyes and mouth, in da
 FRAME_SIZE = (640, 480)
 VIDEO_FPS = 20                   # the session calibrates over the first second: 20 frames
 FOLDER_FPS = capture.FOLDER_FRAME_RATE
+FOLDER_FPS_INT = round(FOLDER_FPS)    # the session calibrates over the folder's first second
 ROLL_DEGREES = 12.0              # the image turned counter-clockwise on screen
-GREEN = np.array(live.LANDMARK_COLOUR) / 255.0
+GREEN = np.array(camera_preview.LANDMARK_COLOUR) / 255.0
 
 
 def actor_frame(dx=0.0, dy=0.0, scale=1.0, angle=0.0):
@@ -87,9 +89,9 @@ def gap_folder(tmp_path_factory):
 
 @pytest.fixture(autouse=True)
 def no_take_left():
-    live.running = live.last_take = None
+    webcam_take.running = webcam_take.last_take = None
     yield
-    live.running = live.last_take = None
+    webcam_take.running = webcam_take.last_take = None
 
 
 def add_avatar(ict, name="avatar"):
@@ -156,7 +158,7 @@ def test_video_take_keys_every_shape_key_at_the_videos_time(ict, video, capfd):
     assert max(values) > 0.0
     assert obj.animation_data is None          # no head target: the object is not animated
     assert obj.rotation_mode == 'XYZ'
-    assert bpy.data.images[live.PREVIEW_IMAGE].size[:] == (live.PREVIEW_WIDTH, 240)
+    assert bpy.data.images[camera_preview.PREVIEW_IMAGE].size[:] == (camera_preview.PREVIEW_WIDTH, 240)
 
 
 def test_head_rotation_follows_the_turned_image(ict, turning_folder):
@@ -204,14 +206,14 @@ def test_head_rotation_onto_a_bone(ict, turning_folder):
 
 def test_no_face_holds_the_pose_and_says_so_and_the_preview_shows_the_landmarks(ict, gap_folder):
     obj = add_avatar(ict)
-    take = live.start_take(bpy.context, source_type='FOLDER', filepath=str(gap_folder),
+    take = webcam_take.start_take(bpy.context, source_type='FOLDER', filepath=str(gap_folder),
                            record=True)
     image_pixels, statuses, values = [], [], []
     try:
         while take.step():
             statuses.append(take.status)
             values.append(key_values(obj))
-            image = bpy.data.images[live.PREVIEW_IMAGE]
+            image = bpy.data.images[camera_preview.PREVIEW_IMAGE]
             image_pixels.append((np.array(image.pixels[:]), green_pixels(image)))
     finally:
         take.close()
@@ -253,13 +255,13 @@ def test_a_lost_camera_ends_the_take_and_keeps_what_was_recorded(ict, video):
     obj = add_avatar(ict)
     with capture.open_source(str(video)) as source:
         frames = list(source)[:26]
-    take = live.start_take(bpy.context, source_type='VIDEO', filepath=str(video), record=True)
+    take = webcam_take.start_take(bpy.context, source_type='VIDEO', filepath=str(video), record=True)
     take.close()
     take.source = UnpluggedCamera(frames)
     while take.step():
         pass
-    assert take.camera_lost and take.frames_read == 26
-    kind, message = live.take_report(take)
+    assert take.interrupted and take.frames_read == 26
+    kind, message = webcam_take.take_report(take)
     assert kind == {'WARNING'}
     assert message.startswith("camera 0 stopped delivering frames: the take ended; Take on "
                               "'avatar': 26 frames from camera 0, 26 with a face, keyed at "
@@ -268,6 +270,61 @@ def test_a_lost_camera_ends_the_take_and_keeps_what_was_recorded(ict, video):
     # a camera's keys start at the take's first keyed frame: 7 frames keyed (19..25)
     for points in keyframes(obj.data.shape_keys).values():
         assert [f for f, _ in points] == [1 + round((k - 19) / VIDEO_FPS * 24) for k in range(19, 26)]
+
+
+BAD_FRAME = 33          # after the folder's one second of calibration and 4 keyed frames
+
+
+@pytest.mark.parametrize("case, problem", [
+    ("unreadable", "image frame_033.png is unreadable"),
+    ("1x1", "image frame_033.png is 1x1 pixels; a face needs at least 24x24"),
+    ("another size", "image frame_033.png is 320x240 pixels but the take's first frame was "
+                     "640x480: a take's frames must all be one size"),
+])
+def test_a_bad_frame_ends_the_take_in_one_line_and_keeps_the_keyframes_before_it(
+        ict, tmp_path, capfd, case, problem):
+    frames = [astronaut_frame(k) for k in range(BAD_FRAME + 3)]
+    folder = write_folder(tmp_path / "frames", frames)
+    bad = folder / f"frame_{BAD_FRAME:03d}.png"
+    if case == "unreadable":
+        bad.write_bytes(b"not a png")
+    else:
+        cv2.imwrite(str(bad), frames[BAD_FRAME][:1, :1] if case == "1x1"
+                    else cv2.resize(frames[BAD_FRAME], (320, 240)))
+    obj = add_avatar(ict)
+    capfd.readouterr()
+    assert bpy.ops.exclone.drive_from_webcam(source_type='FOLDER', filepath=str(folder),
+                                             record=True, head_target='OBJECT') == {'FINISHED'}
+    output = capfd.readouterr()
+    assert "Traceback" not in output.out + output.err
+    # keyed from the calibration's last frame (29) up to the bad frame, at 1 + round(t * 24)
+    keyed = sorted({1 + round(k / FOLDER_FPS * 24) for k in range(FOLDER_FPS_INT - 1, BAD_FRAME)})
+    warnings = [line for line in output.out.splitlines() if line.startswith("Warning: ")]
+    assert warnings == [
+        f"Warning: {problem}: the take ended; Take on 'avatar': {BAD_FRAME} frames from "
+        f"{len(frames)} images in {folder}, {BAD_FRAME} with a face, keyed at frames "
+        f"{keyed[0]}-{keyed[-1]} (what was recorded is kept)"]
+    for points in keyframes(obj.data.shape_keys).values():
+        assert [frame for frame, _ in points] == keyed
+    assert [frame for frame, _ in keyframes(obj)["rotation_quaternion"]] == keyed
+    assert webcam_take.running is None and webcam_take.last_take.frames_read == BAD_FRAME
+
+
+def test_an_avatar_removed_during_the_take_ends_it_in_one_line(ict, video):
+    obj = add_avatar(ict)
+    take = webcam_take.start_take(bpy.context, source_type='VIDEO', filepath=str(video),
+                                  record=True)
+    try:
+        for _ in range(VIDEO_FPS + 2):
+            assert take.step()
+        bpy.data.objects.remove(obj)
+        assert not take.step()
+    finally:
+        take.close()
+    kind, message = webcam_take.take_report(take)
+    assert kind == {'WARNING'} and take.interrupted
+    assert message.startswith("the avatar was removed during the take; Take on 'avatar': "
+                              f"{VIDEO_FPS + 3} frames from video actor.avi"), message
 
 
 # -- undo -----------------------------------------------------------------------------------------
@@ -289,7 +346,7 @@ def test_undo_after_a_take_restores_the_state_before_it(ict, turning_folder):
     assert obj.data.shape_keys.animation_data is None and obj.animation_data is None
     assert key_values(obj) == before_values
     assert obj.rotation_mode == 'XYZ' and tuple(obj.rotation_euler) == before_rotation
-    assert live.PREVIEW_IMAGE not in bpy.data.images
+    assert camera_preview.PREVIEW_IMAGE not in bpy.data.images
 
 
 # -- bad input ------------------------------------------------------------------------------------
@@ -320,7 +377,7 @@ def test_bad_sources_report_and_change_nothing(ict, tmp_path, case):
     assert obj.data.shape_keys.animation_data is None and obj.animation_data is None
     assert obj.rotation_mode == 'XYZ'
     assert key_values(obj) == before
-    assert live.PREVIEW_IMAGE not in bpy.data.images and live.running is None
+    assert camera_preview.PREVIEW_IMAGE not in bpy.data.images and webcam_take.running is None
 
 
 def test_an_avatar_without_shape_keys_or_face_is_refused_before_the_camera_opens(ict):
@@ -337,7 +394,7 @@ def test_an_avatar_without_shape_keys_or_face_is_refused_before_the_camera_opens
                                            "this avatar"):
         bpy.ops.exclone.drive_from_webcam(camera_index=63)
     assert cube.data.shape_keys.animation_data is None
-    assert live.PREVIEW_IMAGE not in bpy.data.images
+    assert camera_preview.PREVIEW_IMAGE not in bpy.data.images
     with pytest.raises(RuntimeError, match="no shape keys with ARKit names"):
         bpy.ops.exclone.drive_from_webcam(camera_index=63, key_set='ARKIT')
 
@@ -349,8 +406,8 @@ def test_calibrate_and_stop_act_on_the_running_take(ict, video):
         with pytest.raises(RuntimeError, match="No take is running"):
             getattr(bpy.ops.exclone, name)()
     add_avatar(ict)
-    take = live.start_take(bpy.context, source_type='VIDEO', filepath=str(video))
-    live.running = take
+    take = webcam_take.start_take(bpy.context, source_type='VIDEO', filepath=str(video))
+    webcam_take.running = take
     try:
         with pytest.raises(RuntimeError, match="A take is running"):
             bpy.ops.exclone.drive_from_webcam()
@@ -447,15 +504,15 @@ def test_calibrate_camera_from_chessboards_is_used_by_later_takes(ict, tmp_path,
     assert webcam.calibration_rms < 0.5
 
     add_avatar(ict)
-    take = live.start_take(bpy.context, source_type='VIDEO', filepath=str(video))
+    take = webcam_take.start_take(bpy.context, source_type='VIDEO', filepath=str(video))
     take.close()
     assert take.session.camera.fx == pytest.approx(webcam.fx)
     assert take.session.camera.cy == pytest.approx(webcam.cy)
     # at another size the intrinsics scale with the image
-    half = live.calibrated_camera(webcam, (320, 240))
+    half = webcam_take.calibrated_camera(webcam, (320, 240))
     assert half.fx == pytest.approx(webcam.fx / 2) and half.cx == pytest.approx(
         (webcam.cx + 0.5) / 2 - 0.5)
-    take = live.start_take(bpy.context, source_type='VIDEO', filepath=str(video),
+    take = webcam_take.start_take(bpy.context, source_type='VIDEO', filepath=str(video),
                            use_calibration=False)
     take.close()
     assert take.session.camera is None    # the default from the first frame's size
@@ -497,7 +554,7 @@ def test_panel_section_offers_the_choices_and_the_status(ict):
     assert ("prop_search", "head_bone") in log
 
     add_avatar(ict)
-    live.running = type("RunningTake", (), {"status": "no face in view: holding the last pose"})
+    webcam_take.running = type("RunningTake", (), {"status": "no face in view: holding the last pose"})
     log = draw_panel()
     assert "exclone.stop_webcam" in [entry[1] for entry in log if entry[0] == "operator"]
     assert ("label", "no face in view: holding the last pose") in log

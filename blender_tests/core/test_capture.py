@@ -26,6 +26,7 @@ def test_video_file_frames_in_order_with_timestamps(tmp_path):
         assert source.description == "video clip.avi (6 frames, 25 fps)"
         frames = list(source)
     assert [f.index for f in frames] == list(range(6))
+    assert [f.name for f in frames] == [f"frame {k} of clip.avi" for k in range(6)]
     np.testing.assert_allclose([f.timestamp for f in frames], np.arange(6) / 25.0)
     np.testing.assert_allclose([f.image.mean() for f in frames], 20 + 20 * np.arange(6), atol=2)
     assert all(f.image.dtype == np.uint8 and f.image.shape == (48, 64, 3) for f in frames)
@@ -45,6 +46,7 @@ def test_folder_of_images_sorted_by_name(tmp_path):
     # a.bmp (frame 2), b.png (frame 0), c.jpg (frame 1)
     np.testing.assert_allclose([f.image.mean() for f in read], [60, 20, 40], atol=2)
     np.testing.assert_allclose([f.timestamp for f in read], [0.0, 0.1, 0.2])
+    assert [f.name for f in read] == ["image a.bmp", "image b.png", "image c.jpg"]
     with open_source(str(tmp_path / "b.png")) as single:
         assert single.description == "image b.png" and len(list(single)) == 1
 
@@ -64,7 +66,7 @@ def test_bad_sources_are_one_line_errors(tmp_path):
     (broken / "b.png").write_bytes(b"not a png")
     with open_source(broken) as source:
         source.read()
-        with pytest.raises(ExCloneError, match="b.png is unreadable"):
+        with pytest.raises(ExCloneError, match="^image b.png is unreadable$"):
             source.read()
     # this machine has no camera; an index far beyond any real one is missing everywhere
     for spec in (63, "63"):

@@ -159,6 +159,8 @@ def test_bad_image_is_a_clear_error(detector):
         detector.detect(np.zeros((480, 640), np.uint8))
     with pytest.raises(ExCloneError, match="8-bit BGR image"):
         detector.detect(np.zeros((480, 640, 3), np.float32))
+    with pytest.raises(ExCloneError, match="^the image is 1x1 pixels; a face needs at least 24x24$"):
+        detector.detect(np.zeros((1, 1, 3), np.uint8))
 
 
 def test_anchor_layout():

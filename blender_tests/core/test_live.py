@@ -1,4 +1,5 @@
-"""core.live: the per-frame tracking session (issue 5), on known answers.
+"""Live tracking on known answers: core.session (the per-frame session), core.tracker_model (the
+shipped model) and core.camera_calibration.
 
 - the synthetic ICT take of test_tracking (known weights and head rotation) fed past the image
   models into the session: weights and head rotation as in the closed-loop tests;
@@ -7,7 +8,9 @@
   the tracked points follow the motion; frames without a face: the pose is held, then tracking
   resumes;
 - chessboard camera calibration on synthetic views with known intrinsics;
-- the shipped tracker model is current.
+- the shipped tracker model is current;
+- a frame that is too small, or of another size than the take's first, is a one-line error naming
+  it, after the frames before it were tracked.
 """
 import functools
 
@@ -16,11 +19,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from exclone_addon.core import live
+from exclone_addon.core.camera_calibration import calibrate_camera
+from exclone_addon.core.capture import open_source
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.face_models import IBUG68_FROM_MEDIAPIPE
-from exclone_addon.core.live import (MODEL_TO_BLENDER, AvatarRig, FaceTrackingSession,
-                                     TrackerModel, calibrate_camera, load_tracker_model)
+from exclone_addon.core.retarget import AvatarRig
+from exclone_addon.core.session import MODEL_TO_BLENDER, FaceTrackingSession
+from exclone_addon.core.tracker_model import (TrackerModel, load_tracker_model,
+                                              read_tracker_locations)
 from exclone_addon.core.tracking import FRONTAL, Camera
 from blender_tests.helpers.takes import (ASTRONAUT_FRAMES, CALIBRATION_FRAMES, FPS, astronaut,
                                          astronaut_frame, astronaut_motion, ict_rig, synthetic_take)
@@ -106,12 +112,51 @@ def test_frames_without_a_face_hold_the_pose_and_tracking_resumes():
     assert not fresh.found and fresh.rotation is None and fresh.status == "no face in view"
 
 
+@pytest.mark.parametrize("case, message", [
+    ("unreadable", "image frame_4.png is unreadable"),
+    ("1x1", "image frame_4.png is 1x1 pixels; a face needs at least 24x24"),
+    ("another size", "image frame_4.png is 320x240 pixels but the take's first frame was 640x480: "
+                     "a take's frames must all be one size"),
+])
+def test_a_bad_frame_in_a_folder_is_a_one_line_error_naming_it(tmp_path, case, message):
+    """Four good frames, then the bad one: the four are tracked, the fifth raises."""
+    for k in range(4):
+        cv2.imwrite(str(tmp_path / f"frame_{k}.png"), astronaut_frame(k))
+    bad = tmp_path / "frame_4.png"
+    if case == "unreadable":
+        bad.write_bytes(b"not a png")
+    else:
+        small = astronaut_frame(4)[:1, :1] if case == "1x1" else cv2.resize(astronaut_frame(4), (320, 240))
+        cv2.imwrite(str(bad), small)
+    session = FaceTrackingSession(calibration_frames=2)
+    results = []
+    with open_source(tmp_path) as source, pytest.raises(ExCloneError) as error:
+        for frame in source:
+            results.append(session.step(frame.image, frame.timestamp, frame.name))
+    assert str(error.value) == message
+    assert len(results) == 4 and all(r.found for r in results)
+    assert results[-1].status == "tracking"
+
+
+def test_a_tiny_image_is_one_clear_error_and_still_images_may_differ_in_size():
+    session = FaceTrackingSession(still_images=True)
+    for shape in ((1, 1, 3), (23, 640, 3)):
+        with pytest.raises(ExCloneError) as error:
+            session.step(np.zeros(shape, np.uint8), 0.0)
+        assert str(error.value) == (f"the frame is {shape[1]}x{shape[0]} pixels; a face needs at "
+                                    "least 24x24")
+    with pytest.raises(ExCloneError, match="the frame is not an 8-bit BGR image"):
+        session.step(np.zeros((480, 640), np.uint8), 0.0)
+    # unrelated photographs: each its own size
+    assert session.step(astronaut(), 0.0).found and session.step(astronaut_frame(0), 0.0).found
+
+
 def test_shipped_tracker_model_is_current():
     # derived data: stale after a change of the library, the canonical face or the engine. The
     # located points are compared (not triangle ids: a point on an edge may change triangle)
     rig = ict_rig()
     fresh = rig.locations.sample(rig.library.mesh.vertices)
-    shipped = live.read_tracker_locations().sample(rig.library.mesh.vertices)
+    shipped = read_tracker_locations().sample(rig.library.mesh.vertices)
     moved = np.linalg.norm(fresh - shipped, axis=1)       # cm on ICT's 15 cm wide face
     assert moved.max() < 0.02, f"points moved up to {moved.max():.3f} cm: run scripts/make_tracker_model.py"
 

@@ -1,4 +1,4 @@
-"""core.tracking: shape-model fit with head pose, neutral calibration, filters (issue 5, steps 3-4).
+"""core.tracking: shape-model fit with head pose, neutral calibration, filters (docs/method.md §11).
 
 Known answers come from a synthetic take: the bundled ICT head, posed with known expression
 weights and a known head rotation, sampled where the canonical face's 468 points lie on it,
@@ -118,7 +118,7 @@ def test_fit_recovers_from_a_stale_warm_start():
 def test_closed_loop_head_rotation_within_2_degrees():
     take, tracked = synthetic_take(), tracked_take()
     errors = rotation_errors_deg(take, tracked.fits)
-    # the same from the METHOD's Kabsch on camera-space shapes against the first frame
+    # the same from Kabsch (remove_head_motion) on camera-space shapes against the first frame
     rigid = tracked.fitter.model.rigid_weights()
     first = tracked.fits[0].camera_points()
     kabsch = np.array([np.degrees((remove_head_motion(f.camera_points(), first, rigid)[1].inv()

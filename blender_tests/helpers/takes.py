@@ -16,12 +16,10 @@ from skimage import data as skimage_data
 
 from exclone_addon.core import data
 from exclone_addon.core.library import load_library
-from exclone_addon.core.mesh import read_obj
-from exclone_addon.core.retarget import locate_canonical_face
+from exclone_addon.core.tracker_model import locate_tracker_landmarks
 from exclone_addon.core.tracking import (FRONTAL, Camera, ShapeFitter, calibrate_neutral,
                                          expression_shape_model)
 
-CANONICAL_FACE = data.CANONICAL_FACE_FILE
 FRAMES = 200
 CALIBRATION_FRAMES = 30      # a neutral face, the head turning (one second at 30 fps)
 FPS = 30.0
@@ -30,13 +28,11 @@ IMAGE_SIZE = (640, 480)
 
 @functools.lru_cache(maxsize=1)
 def ict_rig():
-    """The ICT library with the canonical face located on its skin, and the tracker's model."""
+    """The ICT library with the canonical face located on its skin (the registration the shipped
+    tracker model is made from, run afresh), and the tracker's model."""
     library = load_library()
-    canonical = read_obj(CANONICAL_FACE)
-    triangles = library.mesh.triangles()
-    start, stop = library.parts["face"]      # ICT's skin, as its README defines it
-    skin = triangles[np.all((triangles >= start) & (triangles < stop), axis=1)]
-    locations, _ = locate_canonical_face(canonical, library.mesh, skin)
+    canonical = data.canonical_face()
+    locations = locate_tracker_landmarks(library)
     neutral = locations.sample(library.mesh.vertices)
     deltas = locations.sample(library.deltas)
     model = expression_shape_model(canonical.vertices, neutral, deltas)

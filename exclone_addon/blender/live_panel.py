@@ -1,7 +1,7 @@
 """The "Drive from Webcam" sub-panel of the ExClone sidebar tab."""
 import bpy
 
-from . import live, preferences
+from . import preferences, webcam_take
 
 
 class EXCLONE_PT_webcam(bpy.types.Panel):
@@ -18,11 +18,11 @@ class EXCLONE_PT_webcam(bpy.types.Panel):
 
 def status_text():
     """The panel's status line: the running take's, else what the last take did."""
-    if live.running is not None:
-        return live.running.status
-    if live.last_take is not None:
+    if webcam_take.running is not None:
+        return webcam_take.running.status
+    if webcam_take.last_take is not None:
         try:
-            return f"Last take: {live.last_take.summary()}"
+            return f"Last take: {webcam_take.last_take.summary()}"
         except ReferenceError:
             pass
     return "Not running"
@@ -31,22 +31,29 @@ def status_text():
 def draw(layout, context):
     """The sub-panel's contents on `layout` (a UILayout, or anything with its methods)."""
     webcam = context.scene.exclone.webcam
-    take = live.running
+    path = _draw_source(layout, context, webcam)
+    _draw_take(layout, webcam, path)
+    _draw_camera_calibration(layout, webcam)
 
+
+def _draw_source(layout, context, webcam):
+    """The source choice and its camera index or path; returns the path ("" for a camera)."""
     column = layout.column(align=True)
     column.prop(webcam, "source_type", text="")
     if webcam.source_type == 'CAMERA':
         column.prop(webcam, "camera_index")
         if webcam.camera_index < 0:
             column.label(text=f"Preferences' webcam: {preferences.camera_index(context)}")
-        path = ""
-    elif webcam.source_type == 'VIDEO':
+        return ""
+    if webcam.source_type == 'VIDEO':
         column.prop(webcam, "video_path", text="")
-        path = webcam.video_path
-    else:
-        column.prop(webcam, "image_folder", text="")
-        path = webcam.image_folder
+        return webcam.video_path
+    column.prop(webcam, "image_folder", text="")
+    return webcam.image_folder
 
+
+def _draw_take(layout, webcam, path):
+    """What the take drives, Start (or Stop while it runs), Calibrate, Refine and the status."""
     column = layout.column(align=True)
     column.prop(webcam, "key_set")
     column.prop(webcam, "head_target")
@@ -60,7 +67,7 @@ def draw(layout, context):
     row.prop(webcam, "show_overlay", icon='IMAGE_DATA')
 
     row = layout.row(align=True)
-    if take is None:
+    if webcam_take.running is None:
         start = row.operator("exclone.drive_from_webcam", text="Start", icon='PLAY')
         start.source_type = webcam.source_type
         start.camera_index = webcam.camera_index
@@ -77,6 +84,8 @@ def draw(layout, context):
     layout.operator("exclone.refine_take", icon='MODIFIER')
     layout.label(text=status_text(), icon='INFO')
 
+
+def _draw_camera_calibration(layout, webcam):
     box = layout.box()
     box.label(text="Camera Calibration", icon='CAMERA_DATA')
     box.prop(webcam, "chessboard_folder", text="")

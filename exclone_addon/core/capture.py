@@ -1,8 +1,9 @@
-"""Frames from a camera, a video file or a folder of images, through OpenCV (issue 5, step 1).
+"""Frames from a camera, a video file or a folder of images, through OpenCV: what the live
+tracker reads (docs/method.md §10).
 
 Every source gives 8-bit BGR frames with a timestamp in seconds from the source's start: the wall
 clock for a camera, the frame's place in the file for a video or a folder (so a file is tracked
-the same however fast the machine is).
+the same however fast the machine is), and a name for messages about the frame.
 """
 import time
 from dataclasses import dataclass
@@ -26,6 +27,7 @@ class Frame:
     image: np.ndarray    # (H, W, 3) uint8 BGR
     timestamp: float     # seconds from the source's start
     index: int
+    name: str            # what a message calls it: "image a.png", "frame 12 of clip.mp4"
 
 
 class FrameSource:
@@ -63,6 +65,10 @@ class _CaptureSource(FrameSource):
     def _timestamp(self):
         raise NotImplementedError
 
+    def _name(self):
+        """What the frame about to be returned is called in a message."""
+        raise NotImplementedError
+
     def _ended(self):
         """What read() gives when the capture delivers no more frames."""
         raise NotImplementedError
@@ -76,7 +82,7 @@ class _CaptureSource(FrameSource):
             ok, image = self._capture.read()
             if not ok or image is None:
                 return self._ended()
-        frame = Frame(_as_bgr(image), self._timestamp(), self._count)
+        frame = Frame(_as_bgr(image), self._timestamp(), self._count, self._name())
         self._count += 1
         return frame
 
@@ -109,6 +115,9 @@ class CameraSource(_CaptureSource):
     def _timestamp(self):
         return time.monotonic() - self._clock_start
 
+    def _name(self):
+        return f"frame {self._count} of camera {self.index}"
+
     def _ended(self):
         raise CameraLost(f"camera {self.index} stopped delivering frames")
 
@@ -124,12 +133,16 @@ class VideoSource(_CaptureSource):
         fps = capture.get(cv2.CAP_PROP_FPS)
         self.frame_rate = float(fps) if fps and fps > 0 else FOLDER_FRAME_RATE
         self.frame_count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT))
+        self.file_name = Path(path).name
         self.description = (f"video {Path(path).name} ({self.frame_count} frames, "
                             f"{self.frame_rate:g} fps)")
 
     def _timestamp(self):
         # from the frame's place: container timestamps are often missing or zero
         return self._count / self.frame_rate
+
+    def _name(self):
+        return f"frame {self._count} of {self.file_name}"
 
     def _ended(self):
         return None
@@ -152,7 +165,7 @@ class ImageSource(FrameSource):
     def _load(file):
         image = cv2.imread(str(file), cv2.IMREAD_COLOR)
         if image is None:
-            raise ExCloneError(f"image {file} is unreadable")
+            raise ExCloneError(f"image {Path(file).name} is unreadable")
         return image
 
     def read(self):
@@ -162,7 +175,8 @@ class ImageSource(FrameSource):
             image, self._pending = self._pending, None
         else:
             image = self._load(self.files[self._count])
-        frame = Frame(image, self._count / self.frame_rate, self._count)
+        frame = Frame(image, self._count / self.frame_rate, self._count,
+                      f"image {Path(self.files[self._count]).name}")
         self._count += 1
         return frame
 

@@ -1,4 +1,5 @@
-"""Face detection and 468-point face landmarks from MediaPipe's models, run by OpenCV's dnn module.
+"""Face detection and 468-point face landmarks from MediaPipe's models, run by OpenCV's dnn module
+(docs/method.md §10).
 
 The two TFLite models come from the mediapipe 0.10.21 wheel (extracted by scripts/setup.sh into
 exclone_addon/models/); mediapipe itself is never imported. Pre- and post-processing follow
@@ -36,6 +37,9 @@ NMS_IOU_THRESHOLD = 0.3
 FACE_PRESENCE_THRESHOLD = 0.5
 # The region of interest is the face box (or the landmarks' box) enlarged 1.5 times, square.
 ROI_SCALE = 1.5
+# The smallest region (side, pixels) that can hold a face FaceMesh can read; an image whose
+# shorter side is smaller holds no face.
+MIN_FACE_PIXELS = 24
 
 # BlazeFace keypoints, in the order the model outputs them. In an upright face the first eye is the
 # one on the image's left (the subject's right eye).
@@ -108,11 +112,22 @@ def _load_net(name, models_dir):
     return net
 
 
-def _check_image(image_bgr):
+def checked_bgr(image_bgr, name="the image"):
+    """The image as an array; ExCloneError unless it is 8-bit BGR (height, width, 3)."""
     image = np.asarray(image_bgr)
-    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or min(image.shape[:2]) < 2:
-        raise ExCloneError(f"expected an 8-bit BGR image of shape (height, width, 3), "
-                           f"got {image.dtype} {image.shape}")
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ExCloneError(f"{name} is not an 8-bit BGR image (height, width, 3) but "
+                           f"{image.dtype} {image.shape}")
+    return image
+
+
+def checked_image(image_bgr, name="the image"):
+    """checked_bgr, and big enough to hold a face; `name` says which image in the message."""
+    image = checked_bgr(image_bgr, name)
+    height, width = image.shape[:2]
+    if min(height, width) < MIN_FACE_PIXELS:
+        raise ExCloneError(f"{name} is {width}x{height} pixels; a face needs at least "
+                           f"{MIN_FACE_PIXELS}x{MIN_FACE_PIXELS}")
     return image
 
 
@@ -184,7 +199,7 @@ class FaceDetector:
 
     def detect(self, image_bgr):
         """Faces in an 8-bit BGR image, best first (an empty list when there is none)."""
-        image = _check_image(image_bgr)
+        image = checked_image(image_bgr)
         height, width = image.shape[:2]
         # Letterbox: keep the aspect ratio, pad with black around the centre (as MediaPipe does).
         scale = DETECTOR_SIZE / max(height, width)
@@ -245,7 +260,7 @@ class FaceLandmarker:
 
     def crop(self, image_bgr, roi):
         """The 192x192 BGR image the model sees for this region (edges replicated outside the image)."""
-        image = _check_image(image_bgr)
+        image = checked_image(image_bgr)
         return cv2.warpAffine(image, roi.crop_to_image(LANDMARK_SIZE), (LANDMARK_SIZE, LANDMARK_SIZE),
                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
                               borderMode=cv2.BORDER_REPLICATE)

@@ -1,4 +1,4 @@
-"""Retargeting tracked landmark motion onto an avatar's shape keys (METHOD part 2, steps 4-6).
+"""Retargeting tracked landmark motion onto an avatar's shape keys (docs/method.md §12).
 
 The avatar's shape keys are sampled at the tracked landmarks' locations on its surface (sparse
 blendshapes), mapped into the actor's space by an RBF with a linear term fitted from the avatar's
@@ -12,9 +12,10 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.optimize import lsq_linear
 
+from . import data
 from .cloning import clone_expressions
 from .errors import ExCloneError
-from .mesh import vertex_parts
+from .mesh import MeshError, PolyMesh, vertex_parts
 from .proximity import TriangleSurface
 
 
@@ -72,9 +73,50 @@ def locate_canonical_face(canonical, avatar, avatar_triangles=None, settings=Non
     return locate_points(points, avatar.vertices, avatar_triangles)
 
 
+@dataclass
+class AvatarRig:
+    """The avatar's side of retargeting: its shape keys sampled where the tracker's 468 points
+    lie on it (sparse blendshapes)."""
+    names: list
+    neutral: np.ndarray        # (468, 3) the located points on the avatar's neutral
+    deltas: np.ndarray         # (N, 468, 3) each shape key's displacement there
+    locations: SurfaceLocations
+
+    @classmethod
+    def from_locations(cls, vertices, deltas, names, locations):
+        vertices = np.asarray(vertices, dtype=np.float64)
+        deltas = np.asarray(deltas, dtype=np.float64)
+        if len(names) == 0 or deltas.ndim != 3 or len(deltas) == 0:
+            raise ExCloneError("the avatar has no shape keys to drive")
+        if deltas.shape[1:] != vertices.shape or len(names) != len(deltas):
+            raise ExCloneError(f"the avatar's shape keys ({len(names)} names, deltas "
+                               f"{deltas.shape}) do not match its {len(vertices)} vertices")
+        neutral = locations.sample(vertices)
+        sparse = locations.sample(deltas)
+        motion = np.sqrt((sparse ** 2).sum(axis=2)).max(axis=1)
+        size = np.linalg.norm(neutral.max(axis=0) - neutral.min(axis=0))
+        if motion.max() <= 1e-6 * size:
+            raise ExCloneError("none of the avatar's shape keys moves its face")
+        return cls(list(names), neutral, sparse, locations)
+
+    @classmethod
+    def from_arrays(cls, vertices, triangles, deltas, names, progress=None):
+        """Locates the tracker's points on the avatar (a registration, seconds) and samples its
+        shape keys there. Raises ExCloneError when there are no shape keys or the face does
+        not register."""
+        if len(names) == 0 or np.asarray(deltas).size == 0:
+            raise ExCloneError("the avatar has no shape keys to drive")
+        try:
+            mesh = PolyMesh.from_faces(vertices, np.asarray(triangles))
+            locations, _ = locate_canonical_face(data.canonical_face(), mesh, progress=progress)
+        except (MeshError, np.linalg.LinAlgError) as exc:
+            raise ExCloneError(f"the tracker's face does not register onto the avatar ({exc})") from exc
+        return cls.from_locations(vertices, deltas, names, locations)
+
+
 def map_blendshapes(avatar_neutral, avatar_deltas, actor_neutral, kernel="thin_plate_spline",
                     smoothing=1e-3):
-    """Sparse avatar blendshapes -> the actor's space (METHOD step 4).
+    """Sparse avatar blendshapes -> the actor's space (docs/method.md §12).
 
     avatar_neutral: (m, 3) e'_0; avatar_deltas: (N, m, 3) e'_j - e'_0; actor_neutral: (m, 3) f_1.
     The RBF F with a linear term (degree=1) maps e'_0 onto f_1; the mapped displacement of shape
@@ -96,12 +138,13 @@ def map_blendshapes(avatar_neutral, avatar_deltas, actor_neutral, kernel="thin_p
 
 
 class WeightSolver:
-    """Per-frame weights 0 <= w <= 1 with sum_i p_i ||d_i - sum_j w_j e_ji||^2 minimal (step 5).
+    """Per-frame weights 0 <= w <= 1 with sum_i p_i ||d_i - sum_j w_j e_ji||^2 minimal
+    (docs/method.md §12).
 
     point_weights p_i (m,) trust per landmark; axis_weights trust per model axis: a monocular
     tracker sees depth (the face's z) only through perspective and its shape model, so depth
     counts less by default (0.1 was the best of 0.1, 0.25, 0.5, 1 on the closed-loop synthetic
-    take of blender_tests/test_retarget.py; 1 lost 0.035 of MAE there).
+    take of blender_tests/core/test_retarget.py; 1 lost 0.035 of MAE there).
 
     The matrix is the same every frame: its QR factorisation is computed once, so a frame's
     bounded least squares runs on the small N x N triangle instead of the 3m x N matrix
@@ -174,7 +217,7 @@ class RefinedTake:
 
 
 def refine_take(solver, displacements, closeness=1.0, iterations=20):
-    """Liu et al. 2008 (METHOD step 6): alternate, `iterations` times, the weights of every frame
+    """Liu et al. 2008 (docs/method.md §12): alternate, `iterations` times, the weights of every frame
     (blendshapes fixed) and the blendshapes (weights fixed).
 
     The blendshape step minimises sum_t ||d_t - sum_j w_tj e~_j||^2 + lam sum_j ||e~_j - e_j||^2,

@@ -1,6 +1,6 @@
 """Per-frame 3D face fit to 2D landmarks: a point distribution model with head pose.
 
-The method's constrained local model (METHOD part 2, steps 1-3) with a neural landmark detector
+A constrained local model (docs/method.md §11) with a neural landmark detector
 as the local expert: the 468 FaceMesh points of a frame are explained by a rigid head pose
 (rotation, translation; a perspective camera) and a 3D shape mean + sum_j b_j mode_j, with the
 prior beta * sum_j b_j^2 / lambda_j. Robust per-point weights keep occluded or wrong points from
@@ -201,55 +201,25 @@ class ShapeFitter:
     def fit(self, points2d, weights=None, previous=None):
         """Fit one frame. points2d: (n, 2) pixels; weights: optional (n,) confidences;
         previous: the last frame's FitResult (warm start)."""
-        model, cam = self.model, self.camera
-        p = np.asarray(points2d, dtype=np.float64)
-        n, k = len(model.mean), len(model.eigenvalues)
-        if p.shape != (n, 2):
-            raise ExCloneError(f"expected {n} 2D points, got an array of shape {p.shape}")
-        conf = np.ones(n) if weights is None else np.clip(np.asarray(weights, float), 0.0, None)
-        finite = np.all(np.isfinite(p), axis=1)
-        conf = np.where(finite, conf, 0.0)
-        p = np.where(finite[:, None], p, 0.0)
-        if np.count_nonzero(conf) < 6:
-            raise ExCloneError("fewer than 6 usable points: cannot fit a head pose")
+        p, conf = self._checked_points(points2d, weights)
         if previous is not None:
             rotation, t, b = previous.rotation, previous.translation.copy(), previous.params.copy()
             huber_iterations = 0
         else:
             rotation, t = self.initial_pose(p, conf)
-            b = np.zeros(k)
+            b = np.zeros(len(self.model.eigenvalues))
             huber_iterations = 4
         damping = 1e-3
         robust = conf.copy()
         scale_px = self.min_scale_px
         iteration = 0
         for iteration in range(1, self.max_iterations + 1):
-            shape = model.mean + (b @ self._modes_flat).reshape(n, 3)
+            shape = self.model.mean + (b @ self._modes_flat).reshape(-1, 3)
             y = rotation.apply(shape) + t
-            proj = cam.project(y)
-            diff = proj - p
-            dist = np.sqrt((diff * diff).sum(axis=1))
-            scale_px = max(1.4826 * np.median(dist[conf > 0]), self.min_scale_px)
-            robust = conf * tukey_weights(dist, 4.685 * scale_px)
-            if iteration <= huber_iterations or np.count_nonzero(robust) < 6:
-                # Huber never rejects a point: safe while the pose is still far off
-                robust = conf * huber_weights(dist, 1.345 * scale_px)
-            jp = cam.jacobian(y)
-            # d y / d [omega, t, b]: (n, 3, 6 + K); omega perturbs on the left: y = exp(w) R x + t
-            jy = np.empty((n, 3, 6 + k))
-            jy[:, :, :3] = -_skew_rows(y - t)
-            jy[:, :, 3:6] = np.eye(3)
-            if k:
-                jy[:, :, 6:] = rotation.apply(model.modes.reshape(-1, 3)).reshape(k, n, 3).transpose(1, 2, 0)
-            jac = np.einsum("nij,njk->nik", jp, jy).reshape(2 * n, 6 + k)
-            w2 = np.repeat(robust, 2)
-            res = diff.reshape(-1)
-            jtw = jac.T * w2
-            h = jtw @ jac
-            g = jtw @ res
-            h[np.diag_indices_from(h)] += self._prior + damping * np.diag(h)
-            g[6:] += self._prior[6:] * b
-            step = -cho_solve(cho_factor(h, check_finite=False), g, check_finite=False)
+            diff = self.camera.project(y) - p
+            robust, scale_px = self._robust_weights(diff, conf, huber=iteration <= huber_iterations)
+            jac = self._jacobian(y, t, rotation)
+            step = self._gauss_newton_step(jac, diff, robust, b, damping)
             rotation = Rotation.from_rotvec(step[:3]) * rotation
             t = t + step[3:6]
             b = b + step[6:]
@@ -258,14 +228,62 @@ class ShapeFitter:
             moved = np.abs(jac @ step).max()
             if moved < self.tolerance_px and iteration > huber_iterations:
                 break
-        shape = model.shape(b)
-        proj = cam.project(rotation.apply(shape) + t)
+        shape = self.model.shape(b)
+        proj = self.camera.project(rotation.apply(shape) + t)
         dist = np.linalg.norm(proj - p, axis=1)
         return FitResult(rotation, t, b, shape, proj, dist, robust, iteration, scale_px)
 
+    def _checked_points(self, points2d, weights):
+        """(points, confidences): non-finite points get confidence 0 (and a placeholder 0)."""
+        n = len(self.model.mean)
+        p = np.asarray(points2d, dtype=np.float64)
+        if p.shape != (n, 2):
+            raise ExCloneError(f"expected {n} 2D points, got an array of shape {p.shape}")
+        conf = np.ones(n) if weights is None else np.clip(np.asarray(weights, float), 0.0, None)
+        finite = np.all(np.isfinite(p), axis=1)
+        conf = np.where(finite, conf, 0.0)
+        p = np.where(finite[:, None], p, 0.0)
+        if np.count_nonzero(conf) < 6:
+            raise ExCloneError("fewer than 6 usable points: cannot fit a head pose")
+        return p, conf
+
+    def _robust_weights(self, diff, conf, huber):
+        """(per-point weights, robust residual scale in pixels) from the residuals (n, 2)."""
+        dist = np.sqrt((diff * diff).sum(axis=1))
+        scale_px = max(1.4826 * np.median(dist[conf > 0]), self.min_scale_px)
+        robust = conf * tukey_weights(dist, 4.685 * scale_px)
+        if huber or np.count_nonzero(robust) < 6:
+            # Huber never rejects a point: safe while the pose is still far off
+            robust = conf * huber_weights(dist, 1.345 * scale_px)
+        return robust, scale_px
+
+    def _jacobian(self, y, t, rotation):
+        """d projected points / d [omega, t, b]: (2n, 6 + K) at camera-space points y."""
+        n, k = len(self.model.mean), len(self.model.eigenvalues)
+        jp = self.camera.jacobian(y)
+        # d y / d [omega, t, b]: (n, 3, 6 + K); omega perturbs on the left: y = exp(w) R x + t
+        jy = np.empty((n, 3, 6 + k))
+        jy[:, :, :3] = -_skew_rows(y - t)
+        jy[:, :, 3:6] = np.eye(3)
+        if k:
+            jy[:, :, 6:] = rotation.apply(self.model.modes.reshape(-1, 3)).reshape(k, n, 3).transpose(1, 2, 0)
+        return np.einsum("nij,njk->nik", jp, jy).reshape(2 * n, 6 + k)
+
+    def _gauss_newton_step(self, jac, diff, robust, params, damping):
+        """The damped, prior-regularised weighted Gauss-Newton step in [omega, t, b]."""
+        w2 = np.repeat(robust, 2)
+        res = diff.reshape(-1)
+        jtw = jac.T * w2
+        h = jtw @ jac
+        g = jtw @ res
+        h[np.diag_indices_from(h)] += self._prior + damping * np.diag(h)
+        g[6:] += self._prior[6:] * params
+        return -cho_solve(cho_factor(h, check_finite=False), g, check_finite=False)
+
 
 def calibrate_neutral(fitter, frames, rounds=5, stiffness=1.0):
-    """Adapt the shape model to the actor from frames of a held neutral face (METHOD step 3's f_1).
+    """Adapt the shape model to the actor from frames of a held neutral face (the calibrated
+    neutral f_1 of docs/method.md §11).
 
     The canonical mean is not the actor's face; left alone, the shape modes would absorb the
     difference in every frame. Each point gets a 3D offset, shared by all calibration frames,
@@ -289,38 +307,40 @@ def calibrate_neutral(fitter, frames, rounds=5, stiffness=1.0):
                            beta=fitter.beta, min_scale_px=fitter.min_scale_px,
                            max_iterations=fitter.max_iterations, tolerance_px=fitter.tolerance_px)
 
-    current = with_mean(model.mean, modes=False)
     neutral = model.mean.copy()
-    fits = None
     for _ in range(rounds):
-        if fits is None:
-            fits, previous = [], None
-            for points in frames:
-                previous = current.fit(points, previous=previous)
-                fits.append(previous)
-        jacobians, residuals = [], []
-        for points, fit in zip(frames, fits):
-            y = fit.rotation.apply(fit.shape) + fit.translation
-            jacobians.append(cam.jacobian(y) @ fit.rotation.as_matrix())   # d proj / d offset
-            residuals.append(points - cam.project(y))
-        jac, res = np.array(jacobians), np.array(residuals)      # (F, n, 2, 3), (F, n, 2)
-        # The fit's robust weights would keep rejecting exactly the points where the actor
-        # differs most from the model. The actor's difference is the same in every frame and a
-        # wrong detection is not: weigh each point's frames by their distance to its median.
-        spread = np.linalg.norm(res - np.median(res, axis=0), axis=2)       # (F, n)
-        mad = np.maximum(1.4826 * np.median(spread, axis=0), fitter.min_scale_px)
-        w = tukey_weights(spread, 4.685 * mad)
-        normal = np.einsum("fnki,fnkj,fn->nij", jac, jac, w) + stiffness * np.eye(3)
-        rhs = np.einsum("fnki,fnk,fn->ni", jac, res, w)
-        neutral = neutral + np.linalg.solve(normal, rhs[..., None])[..., 0]
-        current = with_mean(neutral, modes=False)
-        fits = None
+        fits = _fit_frames(with_mean(neutral, modes=False), frames)
+        neutral = neutral + _neutral_offsets(cam, frames, fits, fitter.min_scale_px, stiffness)
     current = with_mean(neutral)
+    return neutral, current, _fit_frames(current, frames)
+
+
+def _fit_frames(fitter, frames):
+    """The fits of consecutive frames, each warm-started from the one before."""
     fits, previous = [], None
     for points in frames:
-        previous = current.fit(points, previous=previous)
+        previous = fitter.fit(points, previous=previous)
         fits.append(previous)
-    return neutral, current, fits
+    return fits
+
+
+def _neutral_offsets(cam, frames, fits, min_scale_px, stiffness):
+    """(n, 3) the per-point offsets of the model that best explain all frames given their fits."""
+    jacobians, residuals = [], []
+    for points, fit in zip(frames, fits):
+        y = fit.rotation.apply(fit.shape) + fit.translation
+        jacobians.append(cam.jacobian(y) @ fit.rotation.as_matrix())   # d proj / d offset
+        residuals.append(points - cam.project(y))
+    jac, res = np.array(jacobians), np.array(residuals)      # (F, n, 2, 3), (F, n, 2)
+    # The fit's robust weights would keep rejecting exactly the points where the actor
+    # differs most from the model. The actor's difference is the same in every frame and a
+    # wrong detection is not: weigh each point's frames by their distance to its median.
+    spread = np.linalg.norm(res - np.median(res, axis=0), axis=2)       # (F, n)
+    mad = np.maximum(1.4826 * np.median(spread, axis=0), min_scale_px)
+    w = tukey_weights(spread, 4.685 * mad)
+    normal = np.einsum("fnki,fnkj,fn->nij", jac, jac, w) + stiffness * np.eye(3)
+    rhs = np.einsum("fnki,fnk,fn->ni", jac, res, w)
+    return np.linalg.solve(normal, rhs[..., None])[..., 0]
 
 
 class OneEuroFilter:
