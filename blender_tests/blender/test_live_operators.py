@@ -3,7 +3,8 @@
 The actor is skimage's astronaut (public domain) moved, scaled and turned in 640x480 frames, as
 a video of known frame rate and as folders of images; the avatar is the bundled ICT library (a
 few of its expressions as shape keys), stood up in Blender facing -Y. The take's step() is what
-the modal timer calls in the UI; here execute() and the tests call it. Not covered headless: the
+the modal timer calls in the UI; here execute() and the tests call it: a bad frame or a removed
+avatar ends the take with one line and keeps what it recorded. Not covered headless: the
 modal/timer path itself and the gpu viewport overlay (both need a window).
 """
 import math
