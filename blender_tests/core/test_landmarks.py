@@ -17,6 +17,7 @@ from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.landmarks import HEURISTIC, NAMES, automatic_landmarks
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import read_obj
+from exclone_addon.core.orientation import FaceFrame
 
 DEMO_HEAD = data.DEMO_HEAD_FILE
 
@@ -171,6 +172,30 @@ def test_not_a_face_asks_for_manual_landmarks(shape):
     message = str(error.value)
     assert "\n" not in message
     assert "landmarks" in message and ("by hand" in message or "manual" in message), message
+
+
+# Meshes in the canonical frame itself (identity rotation), so the heuristics see them as given:
+# nothing near the midline (two plates beside it), and a head-deep midline with no skull above
+# the nose.
+def plates_beside_the_midline():
+    square = np.array([[1, -1, 0], [2, -1, 0], [2, 1, 0], [1, 1, 0]], dtype=float)
+    vertices = np.vstack([square, square * [-1, 1, 1]])
+    return vertices, np.array([[0, 1, 2], [0, 2, 3], [4, 6, 5], [4, 7, 6]])
+
+
+def midline_without_skull():
+    vertices = np.array([[0, 0, 1], [0, 0, -1], [0, -2, 0], [1, 1, 0], [-1, 1, 0]], dtype=float)
+    return vertices, np.array([[0, 1, 2], [0, 3, 1], [0, 1, 4]])
+
+
+@pytest.mark.parametrize("shape,what", [(plates_beside_the_midline, "nose tip"),
+                                        (midline_without_skull, "skull")])
+def test_an_empty_section_asks_for_manual_landmarks(shape, what):
+    vertices, triangles = shape()
+    frame = FaceFrame(np.eye(3), np.zeros(3), float(np.linalg.norm(np.ptp(vertices, axis=0))), 0.0)
+    with pytest.raises(ExCloneError, match=f"could not find the face's {what}.*place the "
+                                           "landmarks by hand"):
+        automatic_landmarks(vertices, triangles, frame)
 
 
 def fixture_tolerance(fixture, name):

@@ -71,10 +71,10 @@ def _profile(segments, walk_axis, bin_size):
     hi = max(s0[:, walk_axis].max(), s1[:, walk_axis].max())
     centres = np.arange(lo + bin_size / 2, hi, bin_size)
     c0, c1 = s0[:, walk_axis][:, None], s1[:, walk_axis][:, None]       # (m, 1)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore"):   # segments along the walk axis
         t = (centres[None, :] - c0) / (c1 - c0)                          # (m, B)
-    inside = (t >= 0) & (t <= 1)
-    z = np.where(inside, s0[:, 2:3] + t * (s1[:, 2:3] - s0[:, 2:3]), -np.inf)
+        inside = (t >= 0) & (t <= 1)
+        z = np.where(inside, s0[:, 2:3] + t * (s1[:, 2:3] - s0[:, 2:3]), -np.inf)
     best = np.argmax(z, axis=0)
     cols = np.arange(len(centres))
     zmax = z[best, cols]
@@ -102,6 +102,8 @@ def _walk(centres, zbin, pts, start, direction, prominence, smooth_bins):
     if len(ahead) < 3:
         return [], []
     real = np.flatnonzero(keep[ahead])
+    if not len(real):
+        return [], []
 
     def nearest_real(k):
         return pts[ahead[real[np.argmin(np.abs(real - k))]]]
@@ -179,51 +181,82 @@ def _front_most(profile, low, high):
     return pts[window[np.argmax(z[window])]] if len(window) else None
 
 
+# Profile sampling, in fractions of the face's diagonal: bins of 0.25%, peaks and valleys that
+# stand out by 0.2%, an opening's edge where the surface jumps by 1% between bins.
+BIN = 0.0025
+PROMINENCE = 0.002
+CLIFF = 0.01
+SMOOTH_BINS = 3
+
+
+def _not_found(what):
+    return ExCloneError(f"could not find the face's {what}; place the landmarks by hand")
+
+
 def heuristic_landmarks(vertices, triangles, frame=None):
-    """The heuristic landmarks that exist on this mesh: {name: vertex id}."""
+    """The heuristic landmarks that exist on this mesh: {name: vertex id}.
+    Raises ExCloneError where the mesh has no surface to look for them on."""
     frame = frame or face_frame(vertices, triangles)
     q = frame.to_canonical(vertices)
     used = np.unique(triangles)
     diag = frame.diagonal
-    found = {}   # name -> canonical position (snapped to a vertex at the end)
-
-    near_mid = used[np.abs(q[used, 0]) < 0.03 * diag]
-    tip_id = near_mid[np.argmax(q[near_mid, 2])]
+    tip_id, near_mid = _nose_tip(q, used, diag)
     tip = q[tip_id]
-    found["nose_tip"] = tip
     # The skin: the part the nose tip is on. Every point snaps to it, and the eye's points are
     # looked for on it alone (eyeballs, lashes and eye occluders sit in front of the opening).
     parts = vertex_parts(len(vertices), triangles)
     skin = used[parts[used] == parts[tip_id]]
-
-    # Does the mesh wrap around (a head) or is it a mask? Look behind the nose on the midline.
-    band = near_mid[np.abs(q[near_mid, 1] - tip[1]) < 0.15 * diag]
     height = np.ptp(q[used, 1])
-    is_head = band.size and (tip[2] - q[band, 2].min()) > 0.35 * height
-    if is_head:
-        # the skull's midline only: a mesh may go on into neck and shoulders below the nose
-        skull = near_mid[q[near_mid, 1] > tip[1]]
-        ears = used[np.abs(q[used, 1] - tip[1]) < 0.12 * diag]
-        found["head_top"] = q[used[np.argmax(q[used, 1])]]
-        # A flat back of the skull has no single extreme (a degree of tilt moves it by several
-        # % of the head): the middle of the band within 0.5% of the diagonal of the rearmost.
-        back = skull[q[skull, 2] < q[skull, 2].min() + 0.005 * diag]
-        middle = np.argmin(np.linalg.norm(q[back] - q[back].mean(axis=0), axis=1))
-        found["head_back"] = q[back[middle]]
-        found["ear_tip_left"] = q[ears[np.argmax(q[ears, 0])]]
-        found["ear_tip_right"] = q[ears[np.argmin(q[ears, 0])]]
-
-    bin_size = 0.0025 * diag
-    smooth = 3
-    prominence = 0.002 * diag
+    found = {"nose_tip": tip}   # name -> canonical position (snapped to a vertex at the end)
+    found.update(_head_extremes(q, used, near_mid, tip, height, diag))
     # Sections keep to the face side (in front of the ears' depth).
     front_tris = triangles[np.all(q[triangles, 2] > tip[2] - 0.3 * height, axis=1)]
-    sag = _profile(plane_section(q, front_tris, 0, 0.0), 1, bin_size)
+    found.update(_profile_points(q, front_tris, tip, diag))
+    if "nose_bridge" in found:
+        skin_tris = front_tris[parts[front_tris[:, 0]] == parts[tip_id]]
+        found.update(_beside_the_nose(q, front_tris, skin_tris, tip, found["nose_bridge"], diag))
+    return _snap_symmetric(found, q, skin)
+
+
+def _nose_tip(q, used, diag):
+    """The front-most vertex near the midline, and the vertices near the midline."""
+    near_mid = used[np.abs(q[used, 0]) < 0.03 * diag]
+    if not len(near_mid):
+        raise _not_found("nose tip (no surface near its symmetry plane)")
+    return near_mid[np.argmax(q[near_mid, 2])], near_mid
+
+
+def _head_extremes(q, used, near_mid, tip, height, diag):
+    """The crown, the back of the head and the ear tips: {} unless the mesh wraps around (a
+    head, not a mask), told by how deep the midline goes behind the nose."""
+    band = near_mid[np.abs(q[near_mid, 1] - tip[1]) < 0.15 * diag]
+    if not (band.size and (tip[2] - q[band, 2].min()) > 0.35 * height):
+        return {}
+    # the skull's midline only: a mesh may go on into neck and shoulders below the nose
+    skull = near_mid[q[near_mid, 1] > tip[1]]
+    if not len(skull):
+        raise _not_found("skull (no surface above the nose on its midline)")
+    ears = used[np.abs(q[used, 1] - tip[1]) < 0.12 * diag]
+    # A flat back of the skull has no single extreme (a degree of tilt moves it by several
+    # % of the head): the middle of the band within 0.5% of the diagonal of the rearmost.
+    back = skull[q[skull, 2] < q[skull, 2].min() + 0.005 * diag]
+    middle = np.argmin(np.linalg.norm(q[back] - q[back].mean(axis=0), axis=1))
+    return {"head_top": q[used[np.argmax(q[used, 1])]], "head_back": q[back[middle]],
+            "ear_tip_left": q[ears[np.argmax(q[ears, 0])]],
+            "ear_tip_right": q[ears[np.argmin(q[ears, 0])]]}
+
+
+def _profile_points(q, front_tris, tip, diag):
+    """Along the mid-sagittal profile: the nose bridge, the subnasal point, the lips and the
+    chin (those found)."""
+    prominence = PROMINENCE * diag
+    sag = _profile(plane_section(q, front_tris, 0, 0.0), 1, BIN * diag)
+    found = {}
     # nose bridge (sellion): the crease between nose and forehead, a nose's length above the tip
-    bridge = _crease(sag, tip[1], +1, 0.04 * diag, 0.2 * diag, prominence, smooth)
+    bridge = _crease(sag, tip[1], +1, 0.04 * diag, 0.2 * diag, prominence, SMOOTH_BINS)
     if bridge is not None:
         found["nose_bridge"] = bridge
-    down_peaks, down_valleys = _walk(*sag, tip[1], -1, prominence, smooth)
+    down_peaks, down_valleys = _walk(*sag, tip[1], -1, prominence, SMOOTH_BINS)
     if down_valleys:
         found["subnasal"] = down_valleys[0]
         below = [p for p in down_peaks if p[1] < down_valleys[0][1]]
@@ -237,51 +270,64 @@ def heuristic_landmarks(vertices, triangles, frame=None):
         chin = _front_most(sag, y - 1.0 * nose_length, y - 0.25 * nose_length)
         if chin is not None:
             found["chin"] = chin
+    return found
 
-    # Horizontal profiles: inner eye corners beside the bridge, alar creases beside the nose,
-    # at nose-length-scaled distances from the midline.
-    if "nose_bridge" in found:
-        nose_length = found["nose_bridge"][1] - tip[1]
-        skin_tris = front_tris[parts[front_tris[:, 0]] == parts[tip_id]]
-        # the corners sit at or somewhat below the bridge: cut at several heights, keep the
-        # deepest crease on each side
-        eye_cuts = [_profile(plane_section(q, front_tris, 1, found["nose_bridge"][1] - k * nose_length),
-                             0, bin_size) for k in np.linspace(0.0, 0.5, 21)]
-        # Alar creases: just below the tip's height, where a cut leaves the nose wing for the
-        # cheek (not the nostril beside the columella, nearer the midline).
-        alar = _profile(plane_section(q, front_tris, 1, tip[1] - 0.1 * nose_length), 0, bin_size)
-        for direction, side in ((+1, "left"), (-1, "right")):
-            corners = [_crease(cut, 0.0, direction, 0.15 * nose_length, 0.9 * nose_length,
-                               prominence, smooth, cliff=0.01 * diag) for cut in eye_cuts]
-            corners = [c for c in corners if c is not None]
-            corner = min(corners, key=lambda c: c[2]) if corners else None
-            crease = _crease(alar, 0.0, direction, 0.2 * nose_length, 0.9 * nose_length,
-                             np.inf, 2 * smooth)
-            for name, point in ((f"eye_inner_{side}", corner), (f"alar_{side}", crease)):
-                if point is not None:
-                    found[name] = point
-            if corner is not None:
-                # the eye opening's far ends: the outer corner walking out from the crease, the
-                # inner one walking back in from the middle (both over cuts at several heights:
-                # one cut at the crease's height misses the opening when the face is tilted)
-                outer = _opening_end(q, skin_tris, corner[0], direction, 0.3 * nose_length,
-                                     1.0 * nose_length,
-                                     corner[1] + nose_length * np.linspace(-0.1, 0.3, 9),
-                                     bin_size, 0.01 * diag)
-                if outer is not None:
-                    found[f"eye_outer_{side}"] = outer
-                    middle = (corner[0] + outer[0]) / 2
-                    inner = _opening_end(q, skin_tris, middle, -direction, 0.0,
-                                         (middle - corner[0]) * direction + 0.3 * nose_length,
-                                         corner[1] + nose_length * np.linspace(-0.1, 0.2, 9),
-                                         bin_size, 0.01 * diag)
-                    if inner is not None:
-                        corner = found[f"eye_inner_{side}"] = inner
-                    lid = _upper_lid(q, skin_tris, corner, outer, nose_length, bin_size,
-                                     0.01 * diag)
-                    if lid is not None:
-                        found[f"eyelid_upper_{side}"] = lid
-    return _snap_symmetric(found, q, skin)
+
+def _beside_the_nose(q, front_tris, skin_tris, tip, bridge, diag):
+    """On horizontal profiles, at nose-length-scaled distances from the midline on each side:
+    the eye's points beside the bridge and the alar crease beside the nose (those found)."""
+    nose_length = bridge[1] - tip[1]
+    bin_size = BIN * diag
+    # the inner corners sit at or somewhat below the bridge: cuts at several heights
+    eye_cuts = [_profile(plane_section(q, front_tris, 1, bridge[1] - k * nose_length), 0, bin_size)
+                for k in np.linspace(0.0, 0.5, 21)]
+    # Alar creases: just below the tip's height, where a cut leaves the nose wing for the
+    # cheek (not the nostril beside the columella, nearer the midline).
+    alar = _profile(plane_section(q, front_tris, 1, tip[1] - 0.1 * nose_length), 0, bin_size)
+    found = {}
+    for direction, side in ((+1, "left"), (-1, "right")):
+        eye = _eye(q, skin_tris, eye_cuts, direction, nose_length, diag)
+        crease = _crease(alar, 0.0, direction, 0.2 * nose_length, 0.9 * nose_length, np.inf,
+                         2 * SMOOTH_BINS)
+        # the inner corner first, then the crease: the order the template file lists them in
+        if "eye_inner" in eye:
+            found[f"eye_inner_{side}"] = eye["eye_inner"]
+        if crease is not None:
+            found[f"alar_{side}"] = crease
+        found.update({f"{name}_{side}": point for name, point in eye.items()})
+    return found
+
+
+def _eye(q, skin_tris, eye_cuts, direction, nose_length, diag):
+    """One eye's inner and outer corners and upper lid, those found: {"eye_inner": point,
+    "eye_outer": point, "eyelid_upper": point}. The inner corner is the deepest crease beside
+    the bridge over the cuts, then the eye opening's far ends: the outer corner walking out from
+    the crease, the inner one walking back in from the middle (both over cuts at several
+    heights: one cut at the crease's height misses the opening when the face is tilted)."""
+    cliff = CLIFF * diag
+    bin_size = BIN * diag
+    corners = [_crease(cut, 0.0, direction, 0.15 * nose_length, 0.9 * nose_length,
+                       PROMINENCE * diag, SMOOTH_BINS, cliff=cliff) for cut in eye_cuts]
+    corners = [c for c in corners if c is not None]
+    if not corners:
+        return {}
+    corner = min(corners, key=lambda c: c[2])
+    found = {"eye_inner": corner}
+    outer = _opening_end(q, skin_tris, corner[0], direction, 0.3 * nose_length, 1.0 * nose_length,
+                         corner[1] + nose_length * np.linspace(-0.1, 0.3, 9), bin_size, cliff)
+    if outer is None:
+        return found
+    found["eye_outer"] = outer
+    middle = (corner[0] + outer[0]) / 2
+    inner = _opening_end(q, skin_tris, middle, -direction, 0.0,
+                         (middle - corner[0]) * direction + 0.3 * nose_length,
+                         corner[1] + nose_length * np.linspace(-0.1, 0.2, 9), bin_size, cliff)
+    if inner is not None:
+        corner = found["eye_inner"] = inner
+    lid = _upper_lid(q, skin_tris, corner, outer, nose_length, bin_size, cliff)
+    if lid is not None:
+        found["eyelid_upper"] = lid
+    return found
 
 
 def _symmetric(found):
