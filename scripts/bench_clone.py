@@ -24,7 +24,7 @@ malloc'd factors; ru_maxrss growth (peak resident size during the cold clone min
 loading the inputs) sees everything the process touched.
 
 Error metrics everywhere, distances of the registered source region's vertices to the target
-region's surface (core.proximity.TriangleSurface) / the target region's bounding-box diagonal,
+region's surface (core.surface.Surface) / the target region's bounding-box diagonal,
 averaged three ways: over all region vertices; over those inside the target's coverage (their
 closest target triangle does not touch its open border: a few % of the face region overhang the
 demo head's neck cut, and where those drift decides the first mean); and over those whose closest
@@ -56,11 +56,11 @@ sys.path.insert(0, str(ROOT))
 from exclone_addon.core import data  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
-from exclone_addon.core.mesh import (PolyMesh, boundary_edges, outward_sign,  # noqa: E402
-                                     read_obj, valid_triangles, vertex_normals, vertex_parts)
-from exclone_addon.core.proximity import SegmentSet, TriangleSurface  # noqa: E402
+from exclone_addon.core.mesh import (PolyMesh, diagonal, read_obj,  # noqa: E402
+                                     valid_triangles, vertex_parts)
 from exclone_addon.core.registration import (PRESETS, Schedule,  # noqa: E402
                                              closest_valid_points, similarity_transform)
+from exclone_addon.core.surface import Surface  # noqa: E402
 
 DEMO_HEAD = data.DEMO_HEAD_FILE
 FACE_VERTICES = 9409           # ICT-FaceKit's "face" part is vertices [0, 9409)
@@ -134,25 +134,15 @@ def registration_errors(registered, src_region, target_vertices, tgt_region):
     """Mean distance of the registered region vertices to the target surface / target diagonal:
     over all of them, over those inside the target's coverage, and over those whose closest
     point is valid by the engine's own rule (where the surfaces overlap); and those shares."""
-    ids = np.unique(src_region)
-    diag = float(np.linalg.norm(np.ptp(target_vertices[np.unique(tgt_region)], axis=0)))
-    surface = TriangleSurface(target_vertices, tgt_region)
-    _, tri, distances, _ = surface.closest(registered[ids])
-    target_edges = boundary_edges(tgt_region)
-    border = np.zeros(len(target_vertices), dtype=bool)
-    border[target_edges.ravel()] = True
-    inside = ~border[tgt_region[tri]].any(axis=1)
+    source, target = Surface(registered, src_region), Surface(target_vertices, tgt_region)
+    ids, diag = source.used, target.diagonal
+    _, tri, distances, _ = target.closest(registered[ids])
+    inside = ~target.on_border[tgt_region[tri]].any(axis=1)
     # the engine's overlap: registration.closest_valid_points with its default cut-offs
-    source_border = np.zeros(len(registered), dtype=bool)
-    source_border[boundary_edges(src_region).ravel()] = True
-    normals = outward_sign(registered, src_region) * vertex_normals(registered, src_region)
-    target_normals = outward_sign(target_vertices, tgt_region) * vertex_normals(target_vertices,
-                                                                                tgt_region)
     schedule = Schedule()
     _, overlap, overlap_distances = closest_valid_points(
-        registered[ids], normals[ids], source_border[ids], surface, target_normals, border,
-        SegmentSet(target_vertices, target_edges), schedule.max_distance * diag,
-        schedule.border_distance * diag)
+        registered[ids], source.vertex_normals[ids], source.on_border[ids], target,
+        schedule.max_distance * diag, schedule.border_distance * diag)
     return {"registration_mean_distance_rel": float(distances.mean()) / diag,
             "registration_mean_distance_covered_rel": float(distances[inside].mean()) / diag,
             "registration_mean_distance_overlap_rel":
@@ -296,7 +286,7 @@ def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
     # process=False: trimesh would otherwise merge vertices and renumber the landmarks
     source_mesh = trimesh.Trimesh(aligned[ids], local[src_region], process=False)
     target_mesh = trimesh.Trimesh(target.vertices, tgt_region, process=False)
-    diag = float(np.linalg.norm(np.ptp(target.vertices[np.unique(tgt_region)], axis=0)))
+    diag = diagonal(target.vertices, np.unique(tgt_region))
     # nricp_sumner scales the source to unit bbox diagonal (trimesh's mesh.scale); express the
     # engine's closest-point cut-off (max_distance x target diagonal) in those units
     threshold = CloneSettings().max_distance * diag / source_mesh.scale

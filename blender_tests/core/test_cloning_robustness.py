@@ -92,6 +92,8 @@ def test_one_fit_serves_several_transfers_and_shipped_landmarks_match_found_ones
                               source_landmarks=lib.automatic_landmarks)
     np.testing.assert_allclose(whole.deltas, both.deltas, atol=1e-9)
     assert whole.landmark_names == fit.landmark_names
+    with pytest.raises(ExCloneError, match="eyeBlink_L.*units or scales"):
+        transfer_expressions(fit, subset.deltas * [[[1.0]], [[1e30]]], list(NAMES))
     with pytest.raises(ExCloneError, match="landmarks do not fit"):
         fit_faces(lib.mesh, target, source_landmarks=(["nose_tip"], np.array([len(lib.mesh.vertices)])))
 
@@ -106,3 +108,60 @@ def test_registration_made_elsewhere_must_fit_the_source(source):
     broken[3] = np.nan
     with pytest.raises(ExCloneError, match="invalid values"):
         fit_registered(mesh, target, broken)
+
+
+def test_absurd_expressions_are_refused_before_the_long_work(source):
+    """Deltas made at another scale than the neutral (1e30 times, or one vertex moving further
+    than the whole face measures) are named in one clear error, before any fitting starts."""
+    mesh, deltas = source
+    calls = []
+
+    def progress(fraction, message):
+        calls.append(message)
+
+    huge = deltas.copy()
+    huge[1] *= 1e30
+    with pytest.raises(ExCloneError, match=r"expression\(s\) eyeBlink_L move .*units or scales"):
+        clone_expressions(mesh, huge, list(NAMES), read_obj(DEMO_HEAD), progress=progress)
+    one_far = deltas.copy()
+    size = np.linalg.norm(np.ptp(mesh.vertices[np.unique(mesh.triangles())], axis=0))
+    one_far[0, 123] = [0.0, 1.5 * size, 0.0]
+    with pytest.raises(ExCloneError, match=r"jawOpen move .*more than the whole source mesh"):
+        clone_expressions(mesh, one_far, list(NAMES), read_obj(DEMO_HEAD), progress=progress)
+    assert calls == [], "the check must come before the fit"
+
+
+@pytest.mark.parametrize("settings, valid", [
+    (dict(preset="slow"), "fast, balanced, precise"),
+    (dict(formulation="sumner"), "reduced, augmented"),
+    (dict(correspondence="nearest"), "vertex, triangle"),
+    (dict(max_distance=-1.0), "positive number"),
+    (dict(landmark_weight=float("nan")), "positive number"),
+])
+def test_unknown_settings_say_what_is_valid(source, settings, valid):
+    from exclone_addon.core.cloning import CloneSettings
+    mesh, deltas = source
+    with pytest.raises(ExCloneError, match=valid):
+        clone_expressions(mesh, deltas, list(NAMES), read_obj(DEMO_HEAD),
+                          settings=CloneSettings(**settings))
+
+
+def test_degenerate_geometry_is_a_clear_error_not_a_nan():
+    """Finite but degenerate input to the steps themselves: coincident points to align, a
+    source region with no triangles, an unknown preset or formulation."""
+    from exclone_addon.core import deformation
+    from exclone_addon.core.registration import Schedule, register, similarity_transform
+    from exclone_addon.core.surface import Surface
+    points = np.ones((5, 3))
+    spread = np.random.default_rng(0).normal(size=(5, 3))
+    for a, b in ((points, spread), (spread, points), (np.zeros((5, 3)), spread)):
+        with pytest.raises(ExCloneError, match="coincide"):
+            similarity_transform(a, b)
+    square = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    target = Surface(square, [[0, 1, 2], [0, 2, 3]])
+    with pytest.raises(ExCloneError, match="lie on no face of the source"):
+        register(Surface(square, np.zeros((0, 3))), target, [0], square[:1])
+    with pytest.raises(ExCloneError, match="fast, balanced, precise"):
+        Schedule.preset("quick")
+    with pytest.raises(ExCloneError, match="reduced, augmented"):
+        deformation.gradient_operator(square, target.triangles, "sumner")

@@ -1,4 +1,10 @@
-"""The whole cloning pipeline: landmarks -> registration -> correspondence -> transfer."""
+"""The whole cloning pipeline (docs/method.md §1): landmarks -> rigid alignment -> registration
+-> correspondence -> transfer.
+
+fit_faces runs the first four once per source and target (a FaceFit); transfer_expressions
+carries any number of expressions through a fit; clone_expressions does both. Each mesh is
+prepared once as a surface.Surface and passed from step to step.
+"""
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -10,11 +16,14 @@ from scipy.spatial.transform import Rotation
 from . import deformation
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
 from .errors import ExCloneError
-from .landmarks import automatic_landmarks, checked_pairs
-from .mesh import checked_triangles, diagonal, outward_sign, vertex_normals, vertex_parts
+from .landmarks import MIN_PAIRS, automatic_landmarks, checked_pairs
+from .mesh import checked_triangles, vertex_parts
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
+from .surface import Surface
 from .transfer import Transfer
+
+CORRESPONDENCES = ("vertex", "triangle")
 
 
 @dataclass
@@ -38,21 +47,14 @@ class CloneResult:
     quality: dict = field(default_factory=dict)   # e.g. registration_mean_distance_rel
 
 
-def _parts_of(ids, n_vertices, triangles):
-    """Triangles of the connected parts that hold any of the vertices `ids`."""
-    parts = vertex_parts(n_vertices, triangles)
-    keep = np.isin(parts, parts[ids])
-    return triangles[keep[triangles[:, 0]]]
-
-
 @dataclass
 class FaceFit:
     """Registration and correspondence of a source face onto a target: all the transfer needs.
 
     One fit serves any number of transfers (e.g. Register, then Clone of a chosen subset)."""
-    source_vertex_count: int
+    source: object                    # surface.Surface of the source mesh, its own coordinates
     target: object                    # PolyMesh
-    target_region: np.ndarray         # (T, 3) the target triangles that get gradients
+    target_region: object             # surface.Surface of the target triangles that get gradients
     source_region: np.ndarray         # (S, 3) the registered source triangles
     rotation: np.ndarray              # (3, 3) \
     scale: float                      #          > similarity source -> target frame
@@ -71,6 +73,8 @@ class FaceFit:
     _transfer: object = None          # the factorised system, made on the first transfer
 
 
+# ------------------------------------------------------------------------------ fitting
+
 def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings=None,
               progress=None):
     """Landmarks, registration and correspondence of source onto target (PolyMesh each).
@@ -81,129 +85,158 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     progress: optional callable(fraction, message); it may raise core.errors.Cancelled.
     Raises ExCloneError with a user-facing message on bad input.
     """
-    settings = settings or CloneSettings()
-    if settings.formulation not in deformation.FORMULATIONS:
-        raise ExCloneError(f"unknown formulation {settings.formulation!r}")
-    timings = {}
-    clock = time.perf_counter()
+    return _fit(_surface_of(source, "source mesh"), target, landmarks, source_landmarks,
+                _checked_settings(settings), _progress_span(progress, 0.0, 1.0))
 
-    def lap(name):
-        nonlocal clock
-        now = time.perf_counter()
-        timings[name] = now - clock
-        clock = now
 
-    def report(fraction, message):
-        if progress:
-            progress(fraction, message)
-
-    src_v, src_tris = checked_triangles(source, "source mesh")
-    tgt_v, tgt_tris = checked_triangles(target, "target mesh")
-
-    # 1. Landmarks
+def _fit(source, target_mesh, landmarks, source_landmarks, settings, report):
+    """fit_faces on the source's Surface (whole mesh); report(fraction, message) or a no-op."""
+    stopwatch = _Stopwatch()
+    target = _surface_of(target_mesh, "target mesh")
     report(0.0, "landmarks")
-    if landmarks is None:
-        if source_landmarks is not None:
-            src_names, src_ids = list(source_landmarks[0]), np.asarray(source_landmarks[1])
-            if len(src_names) != len(src_ids) or np.any(src_ids < 0) or np.any(src_ids >= len(src_v)):
-                raise ExCloneError("the source's landmarks do not fit its mesh")
+    src_lm, tgt_lm, landmark_names = _landmarks(source, target, landmarks, source_landmarks)
+    stopwatch.lap("landmarks")
 
-        def find(vertices, triangles):
-            return automatic_landmarks(vertices, triangles, face_frame(vertices, triangles))
-
-        # both faces at once when both are looked for (numpy and the KD-tree release the GIL);
-        # the source's error, if any, is the one reported
-        with ThreadPoolExecutor(max_workers=2) as pool:
-            src_job = pool.submit(find, src_v, src_tris) if source_landmarks is None else None
-            tgt_job = pool.submit(find, tgt_v, tgt_tris)
-            if src_job:
-                src_names, src_ids = src_job.result()
-            tgt_names, tgt_ids = tgt_job.result()
-        common = [n for n in src_names if n in tgt_names]
-        src_lm = np.array([src_ids[src_names.index(n)] for n in common])
-        tgt_lm = np.array([tgt_ids[tgt_names.index(n)] for n in common])
-        landmark_names = common
-    else:
-        src_lm, tgt_lm = checked_pairs(landmarks, len(src_v), len(tgt_v))
-        landmark_names = [f"landmark_{k}" for k in range(len(src_lm))]
-    lap("landmarks")
-
-    # 2. Registration of the source parts the landmarks are on, in the target's frame
     report(0.2, "registration")
-    src_region = _parts_of(src_lm, len(src_v), src_tris)
-    tgt_region = _parts_of(tgt_lm, len(tgt_v), tgt_tris)
-    rot, scale, shift = similarity_transform(src_v[src_lm], tgt_v[tgt_lm])
-    aligned = src_v @ rot.T * scale + shift
-    src_sign = outward_sign(aligned, src_region)
-    tgt_sign = outward_sign(tgt_v, tgt_region)
-    diag = diagonal(tgt_v, np.unique(tgt_region))
+    source_region, target_region = source.parts_holding(src_lm), target.parts_holding(tgt_lm)
+    automatic = landmarks is None
+    rotation, scale, aligned = _rigid_alignment(source_region, target_region, src_lm, tgt_lm,
+                                                automatic, settings)
+    reg = _registration(aligned, target_region, src_lm, tgt_lm, automatic, settings,
+                        _progress_span(report, 0.2, 0.85))
+    stopwatch.lap("registration")
+
+    report(0.85, "correspondence")
+    vertex_map, mapped, pairs, weights = _correspond(reg.surface, target_region, settings)
+    stopwatch.lap("correspondence")
+    report(1.0, "fitted")
+    return FaceFit(
+        source=source, target=target_mesh, target_region=target_region,
+        source_region=source_region.triangles, rotation=rotation, scale=scale,
+        aligned_source=aligned.vertices, vertex_map=vertex_map, mapped=mapped, pairs=pairs,
+        weights=weights, formulation=settings.formulation, source_landmarks=src_lm,
+        target_landmarks=tgt_lm, landmark_names=landmark_names, registered_source=reg.vertices,
+        timings=stopwatch.timings,
+        quality={**_registration_quality(reg, target_region.diagonal, len(src_lm)),
+                 **_correspondence_quality(mapped, weights, scale, target_region.diagonal)})
+
+
+def _checked_settings(settings):
+    """The settings (defaults if None), or ExCloneError naming what is valid."""
+    settings = settings or CloneSettings()
+    deformation.checked_formulation(settings.formulation)
+    Schedule.preset(settings.preset)
+    if settings.correspondence not in CORRESPONDENCES:
+        raise ExCloneError(f"unknown correspondence {settings.correspondence!r}; use one of: "
+                           + ", ".join(CORRESPONDENCES))
+    for name in ("max_distance", "landmark_weight"):
+        value = getattr(settings, name)
+        try:
+            usable = bool(np.isfinite(float(value)) and float(value) > 0)
+        except (TypeError, ValueError):
+            usable = False
+        if not usable:
+            raise ExCloneError(f"setting {name} is {value!r}; it must be a positive number")
+    return settings
+
+
+def _surface_of(mesh, what):
+    """The Surface of a PolyMesh's valid triangles (MeshError if the mesh cannot be used)."""
+    return Surface(*checked_triangles(mesh, what))
+
+
+def _landmarks(source, target, landmarks, source_landmarks):
+    """(source ids, target ids, names): the given pairs, checked, or automatic ones."""
+    if landmarks is not None:
+        src_lm, tgt_lm = checked_pairs(landmarks, len(source.vertices), len(target.vertices))
+        return src_lm, tgt_lm, [f"landmark_{k}" for k in range(len(src_lm))]
+    if source_landmarks is not None:
+        src_names, src_ids = list(source_landmarks[0]), np.asarray(source_landmarks[1])
+        if len(src_names) != len(src_ids) or np.any(src_ids < 0) \
+                or np.any(src_ids >= len(source.vertices)):
+            raise ExCloneError("the source's landmarks do not fit its mesh")
+
+    def find(surface):
+        frame = face_frame(surface.vertices, surface.triangles, surface.search)
+        return automatic_landmarks(surface.vertices, surface.triangles, frame)
+
+    # both faces at once when both are looked for (numpy and the KD-tree release the GIL);
+    # the source's error, if any, is the one reported
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        src_job = pool.submit(find, source) if source_landmarks is None else None
+        tgt_job = pool.submit(find, target)
+        if src_job:
+            src_names, src_ids = src_job.result()
+        tgt_names, tgt_ids = tgt_job.result()
+    common = [n for n in src_names if n in tgt_names]
+    if len(common) < MIN_PAIRS:
+        raise ExCloneError(f"only {len(common)} landmarks were found on both faces; "
+                           "place the landmarks by hand")
+    return (np.array([src_ids[src_names.index(n)] for n in common], dtype=np.int64),
+            np.array([tgt_ids[tgt_names.index(n)] for n in common], dtype=np.int64), common)
+
+
+def _rigid_alignment(source, target, src_lm, tgt_lm, automatic, settings):
+    """(R, s, aligned source Surface): the similarity that takes the source into the target's
+    frame, from the landmarks. Automatic landmarks are approximate: they start the alignment,
+    and the surfaces finish it (a similarity ICP)."""
+    rotation, scale, shift = similarity_transform(source.vertices[src_lm], target.vertices[tgt_lm])
+    aligned = source.moved(source.vertices @ rotation.T * scale + shift)
+    if automatic:
+        ids = aligned.used
+        r, s, t = similarity_icp(aligned.vertices[ids], aligned.vertex_normals[ids], target,
+                                 settings.max_distance * target.diagonal)
+        aligned = aligned.moved(aligned.vertices @ r.T * s + t)
+        rotation, scale = r @ rotation, s * scale
+    return rotation, scale, aligned
+
+
+def _registration(aligned, target, src_lm, tgt_lm, automatic, settings, report):
+    """The non-rigid registration of the aligned source onto the target region; automatic
+    landmarks guide it softly, given ones are hard. ExCloneError if it did not converge."""
     schedule = Schedule.preset(settings.preset)
     schedule.max_distance = settings.max_distance
-    if landmarks is None:
-        # Automatic landmarks are approximate: they start the alignment, the surfaces finish it
-        # (a similarity ICP), and they guide the non-rigid fit softly.
-        normals = src_sign * vertex_normals(aligned, src_region)
-        region_ids = np.unique(src_region)
-        r2, s2, t2 = similarity_icp(aligned[region_ids], normals[region_ids], tgt_v, tgt_region,
-                                    tgt_sign, settings.max_distance * diag)
-        aligned = aligned @ r2.T * s2 + t2
-        rot, scale = r2 @ rot, s2 * scale
+    if automatic:
         schedule.landmark_weight = settings.landmark_weight
-
-    def registration_progress(fraction, message):
-        report(0.2 + 0.65 * fraction, message)
-
-    reg = register(aligned, src_region, tgt_v, tgt_region, src_lm, tgt_v[tgt_lm],
-                   formulation=settings.formulation, schedule=schedule,
-                   source_normal_sign=src_sign, target_normal_sign=tgt_sign,
-                   progress=registration_progress)
-    lap("registration")
+    reg = register(aligned, target, src_lm, target.vertices[tgt_lm],
+                   formulation=settings.formulation, schedule=schedule, progress=report)
     if reg.valid_fraction < 0.3:
         raise ExCloneError(
             f"registration did not converge: only {100 * reg.valid_fraction:.0f}% of the source "
             "face found the target surface; check the landmarks")
-
-    # 3. Correspondence: the vertex map where plausible, triangle pairs elsewhere
-    report(0.85, "correspondence")
-    vertex_map, mapped, pairs, weights = _correspond(reg.vertices, src_region, tgt_v, tgt_region,
-                                                     src_sign, tgt_sign, diag, settings)
-    lap("correspondence")
-    quality = {
-        "registration_mean_distance": reg.mean_distance,
-        "registration_mean_distance_rel": reg.mean_distance / diag,
-        "registration_valid_fraction": reg.valid_fraction,
-        "registration_history_rel": [h / diag for h in reg.history],
-        "correspondence_coverage": float(np.mean(weights > 0)),
-        "correspondence_vertex_mapped": float(np.mean(mapped)),
-        "landmark_count": int(len(src_lm)),
-        "similarity_scale": scale,
-        "target_diagonal": diag,
-    }
-    report(1.0, "fitted")
-    return FaceFit(len(src_v), target, tgt_region, src_region, rot, scale, aligned, vertex_map,
-                   mapped, pairs, weights, settings.formulation, src_lm, tgt_lm, landmark_names,
-                   reg.vertices, timings, quality)
+    return reg
 
 
-def _correspond(registered, src_region, tgt_v, tgt_region, src_sign, tgt_sign, diag, settings):
-    """Correspondence of the target region with the registered source region: the vertex map
-    where plausible, triangle pairs elsewhere. Returns (vertex_map, mapped, pairs, weights)."""
-    max_distance = settings.max_distance * diag
-    tgt_normals = tgt_sign * vertex_normals(tgt_v, tgt_region)
-    vertex_map = map_vertices(registered, src_region, tgt_v, tgt_normals, np.unique(tgt_region),
-                              max_distance, src_sign)
+def _correspond(registered, target, settings):
+    """Correspondence of the target region with the registered source region (Surfaces): the
+    vertex map where plausible, triangle pairs elsewhere. Returns (vertex_map, mapped, pairs,
+    weights)."""
+    max_distance = settings.max_distance * target.diagonal
+    vertex_map = map_vertices(registered, target, max_distance)
     if settings.correspondence == "vertex":
-        mapped = mapped_triangles(vertex_map, registered, src_region, tgt_v, tgt_region,
-                                  src_sign, tgt_sign)
+        mapped = mapped_triangles(vertex_map, registered, target)
     else:
-        mapped = np.zeros(len(tgt_region), dtype=bool)
-    pairs = triangle_correspondence(registered, src_region, tgt_v, tgt_region, max_distance,
-                                    src_sign, tgt_sign, wanted=~mapped)
-    pairs = pairs.matrix(len(tgt_region), len(src_region))
+        mapped = np.zeros(len(target.triangles), dtype=bool)
+    pairs = triangle_correspondence(registered, target, max_distance, wanted=~mapped)
+    pairs = pairs.matrix(len(target.triangles), len(registered.triangles))
     weights = np.where(mapped, 1.0, np.asarray(pairs.sum(axis=1)).ravel())
     if not np.any(weights > 0):
         raise ExCloneError("no triangle of the target corresponds to the source; check the landmarks")
     return vertex_map, mapped, pairs, weights
+
+
+def _registration_quality(reg, diagonal, landmark_count):
+    return {"registration_mean_distance": reg.mean_distance,
+            "registration_mean_distance_rel": reg.mean_distance / diagonal,
+            "registration_valid_fraction": reg.valid_fraction,
+            "registration_history_rel": [h / diagonal for h in reg.history],
+            "landmark_count": int(landmark_count)}
+
+
+def _correspondence_quality(mapped, weights, scale, diagonal):
+    return {"correspondence_coverage": float(np.mean(weights > 0)),
+            "correspondence_vertex_mapped": float(np.mean(mapped)),
+            "similarity_scale": scale, "target_diagonal": diagonal}
 
 
 def fit_registered(source, target, registered_source, *, settings=None):
@@ -215,80 +248,120 @@ def fit_registered(source, target, registered_source, *, settings=None):
     brings the source's expressions into the target's frame is the least-squares one from the
     source to its registered positions.
     """
-    settings = settings or CloneSettings()
+    settings = _checked_settings(settings)
     start = time.perf_counter()
-    src_v, src_region = checked_triangles(source, "source mesh")
-    tgt_v, tgt_region = checked_triangles(target, "target mesh")
+    source_surface, target_region = _surface_of(source, "source mesh"), _surface_of(target, "target mesh")
     registered = np.asarray(registered_source, dtype=np.float64)
-    if registered.shape != src_v.shape or not np.all(np.isfinite(registered)):
+    if registered.shape != source_surface.vertices.shape or not np.all(np.isfinite(registered)):
         raise ExCloneError(f"the registered source has shape {registered.shape} or invalid values; "
-                           f"expected {src_v.shape} finite positions")
-    ids = np.unique(src_region)
-    rot, scale, shift = similarity_transform(src_v[ids], registered[ids])
-    aligned = src_v @ rot.T * scale + shift
-    src_sign, tgt_sign = outward_sign(aligned, src_region), outward_sign(tgt_v, tgt_region)
-    diag = diagonal(tgt_v, np.unique(tgt_region))
-    vertex_map, mapped, pairs, weights = _correspond(registered, src_region, tgt_v, tgt_region,
-                                                     src_sign, tgt_sign, diag, settings)
-    quality = {"correspondence_coverage": float(np.mean(weights > 0)),
-               "correspondence_vertex_mapped": float(np.mean(mapped)),
-               "similarity_scale": scale, "target_diagonal": diag}
+                           f"expected {source_surface.vertices.shape} finite positions")
+    ids = source_surface.used
+    rotation, scale, shift = similarity_transform(source_surface.vertices[ids], registered[ids])
+    vertex_map, mapped, pairs, weights = _correspond(source_surface.moved(registered),
+                                                     target_region, settings)
     none = np.zeros(0, dtype=np.int64)
-    return FaceFit(len(src_v), target, tgt_region, src_region, rot, scale, aligned, vertex_map,
-                   mapped, pairs, weights, settings.formulation, none, none, [], registered,
-                   {"correspondence": time.perf_counter() - start}, quality)
+    return FaceFit(
+        source=source_surface, target=target, target_region=target_region,
+        source_region=source_surface.triangles, rotation=rotation, scale=scale,
+        aligned_source=source_surface.vertices @ rotation.T * scale + shift,
+        vertex_map=vertex_map, mapped=mapped, pairs=pairs, weights=weights,
+        formulation=settings.formulation, source_landmarks=none, target_landmarks=none,
+        landmark_names=[], registered_source=registered,
+        timings={"correspondence": time.perf_counter() - start},
+        quality=_correspondence_quality(mapped, weights, scale, target_region.diagonal))
 
 
-def _checked_deltas(source_deltas, names, n_source):
+# ------------------------------------------------------------------------------ transfer
+
+def _checked_deltas(source_deltas, names, source):
+    """The expressions' deltas as float64 (E, n_source, 3), checked against the source Surface
+    before any long work: ExCloneError naming what is wrong."""
     deltas = np.asarray(source_deltas, dtype=np.float64)
+    n_source = len(source.vertices)
     if deltas.ndim != 3 or deltas.shape[1:] != (n_source, 3):
         raise ExCloneError(f"expression deltas have shape {deltas.shape}; expected (E, {n_source}, 3)")
     if len(names) != len(deltas):
         raise ExCloneError(f"{len(names)} names for {len(deltas)} expressions")
-    if not np.all(np.isfinite(deltas)):
-        raise ExCloneError("source expressions contain NaN or infinite values")
+    broken = ~np.isfinite(deltas).all(axis=(1, 2))
+    if broken.any():
+        raise ExCloneError(f"source expression(s) {_listed(names, broken)} contain NaN or "
+                           "infinite values")
+    # A vertex of the face moving further than the whole face measures is no expression: the
+    # deltas were made at another scale or in other units than the neutral.
+    with np.errstate(over="ignore"):
+        reach = np.linalg.norm(deltas[:, source.used], axis=2).max(axis=1, initial=0.0)
+    absurd = reach > source.diagonal
+    if absurd.any():
+        raise ExCloneError(
+            f"source expression(s) {_listed(names, absurd)} move a vertex by up to "
+            f"{reach[absurd].max():.3g}, more than the whole source mesh measures "
+            f"({source.diagonal:.3g}): the expressions and the neutral mesh are probably in "
+            "different units or scales")
     return deltas
+
+
+def _listed(names, mask, most=5):
+    """The names where mask is True, at most `most` of them, for a message."""
+    chosen = [str(name) for name, bad in zip(names, mask) if bad]
+    more = f" and {len(chosen) - most} more" if len(chosen) > most else ""
+    return ", ".join(chosen[:most]) + more
 
 
 def transfer_expressions(fit, source_deltas, names):
     """Every source expression onto the fitted target: CloneResult (timings and quality include
     the fit's). The transfer system is factorised once per fit and reused by later calls."""
     start = time.perf_counter()
-    deltas = _checked_deltas(source_deltas, names, fit.source_vertex_count)
-    tgt_v = np.asarray(fit.target.vertices, dtype=np.float64)
-    tgt_region, src_region, mapped = fit.target_region, fit.source_region, fit.mapped
+    deltas = _checked_deltas(source_deltas, names, fit.source)
+    target_vertices = fit.target_region.vertices
     aligned_deltas = deltas @ fit.rotation.T * fit.scale
-    # the source at each mapped target vertex, sampled once: rest position and displacements
-    anchors = np.flatnonzero(fit.vertex_map.valid)
-    rest_at = np.zeros((len(tgt_v), 3))
-    moves_at = np.zeros((len(deltas), len(tgt_v), 3))
-    rest_at[anchors] = fit.vertex_map.sample(fit.aligned_source, src_region, anchors)
-    moves_at[:, anchors] = np.moveaxis(
-        fit.vertex_map.sample(np.moveaxis(aligned_deltas, 0, 1), src_region, anchors), 1, 0)
-    wanted = np.zeros((len(deltas), len(tgt_region), 3, 3))
-    if mapped.any():
-        corners = tgt_region[mapped]
-        rest = rest_at[corners]                                                 # (m, 3, 3)
-        wanted[:, mapped] = deformation.corner_gradients(rest, rest + moves_at[:, corners])
-    paired = ~mapped & (fit.weights > 0)
-    if paired.any():
-        rows = fit.pairs[paired]
-        used = np.unique(rows.indices)              # only the source triangles some pair uses
-        gradients = deformation.full_gradients(fit.aligned_source, fit.aligned_source + aligned_deltas,
-                                               src_region[used])
-        flat = np.moveaxis(gradients, 0, 1).reshape(len(used), -1)                  # (U, E*9)
-        mean = (rows[:, used] @ flat) / fit.weights[paired, None]
-        wanted[:, paired] = np.moveaxis(mean.reshape(-1, len(deltas), 3, 3), 1, 0)
+    anchors, rest_at, moves_at = _source_at_mapped_vertices(fit, aligned_deltas)
+    wanted = _wanted_gradients(fit, aligned_deltas, rest_at, moves_at)
     if fit._transfer is None:
-        fit._transfer = Transfer(tgt_v, tgt_region, fit.weights, fit.formulation)
+        fit._transfer = Transfer(target_vertices, fit.target_region.triangles, fit.weights,
+                                 fit.formulation)
     result = fit._transfer(wanted, moves_at[:, anchors], anchors)
-    _follow_unsolved(result, tgt_v, fit.target.triangles(), tgt_region)
+    _follow_unsolved(result, fit.target_region, fit.target.triangles())
     if not np.all(np.isfinite(result)):
         raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
     timings["total"] = sum(timings.values())
     return CloneResult(list(names), result, fit.source_landmarks, fit.target_landmarks,
                        fit.landmark_names, fit.registered_source, timings, dict(fit.quality))
+
+
+def _source_at_mapped_vertices(fit, aligned_deltas):
+    """The source under each mapped target vertex, sampled once: (mapped vertex ids, rest
+    positions (n_target, 3), displacements (E, n_target, 3)), zeros at unmapped vertices."""
+    n_target = len(fit.target_region.vertices)
+    anchors = np.flatnonzero(fit.vertex_map.valid)
+    rest_at = np.zeros((n_target, 3))
+    moves_at = np.zeros((len(aligned_deltas), n_target, 3))
+    rest_at[anchors] = fit.vertex_map.sample(fit.aligned_source, fit.source_region, anchors)
+    moves_at[:, anchors] = np.moveaxis(fit.vertex_map.sample(
+        np.moveaxis(aligned_deltas, 0, 1), fit.source_region, anchors), 1, 0)
+    return anchors, rest_at, moves_at
+
+
+def _wanted_gradients(fit, aligned_deltas, rest_at, moves_at):
+    """(E, T, 3, 3) the source gradient each target triangle should take: its image's on the
+    source where the vertex map is plausible (mapped), else the weighted mean of its pairs'."""
+    triangles, mapped = fit.target_region.triangles, fit.mapped
+    wanted = np.zeros((len(aligned_deltas), len(triangles), 3, 3))
+    if mapped.any():
+        corners = triangles[mapped]
+        rest = rest_at[corners]                                                 # (m, 3, 3)
+        wanted[:, mapped] = deformation.corner_gradients(rest, rest + moves_at[:, corners])
+    paired = ~mapped & (fit.weights > 0)
+    if paired.any():
+        rows = fit.pairs[paired]
+        used = np.unique(rows.indices)              # only the source triangles some pair uses
+        gradients = deformation.full_gradients(fit.aligned_source,
+                                               fit.aligned_source + aligned_deltas,
+                                               fit.source_region[used])
+        flat = np.moveaxis(gradients, 0, 1).reshape(len(used), -1)                  # (U, E*9)
+        mean = (rows[:, used] @ flat) / fit.weights[paired, None]
+        wanted[:, paired] = np.moveaxis(mean.reshape(-1, len(aligned_deltas), 3, 3), 1, 0)
+    return wanted
 
 
 def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
@@ -299,14 +372,11 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
     landmarks, source_landmarks, progress: as fit_faces.
     Raises ExCloneError with a user-facing message on bad input.
     """
-    deltas = _checked_deltas(source_deltas, names, len(source.vertices))   # before the long part
-
-    def fit_progress(fraction, message):
-        if progress:
-            progress(0.8 * fraction, message)
-
-    fit = fit_faces(source, target, landmarks=landmarks, source_landmarks=source_landmarks,
-                    settings=settings, progress=fit_progress)
+    settings = _checked_settings(settings)
+    source_surface = _surface_of(source, "source mesh")
+    deltas = _checked_deltas(source_deltas, names, source_surface)   # before the long part
+    fit = _fit(source_surface, target, landmarks, source_landmarks, settings,
+               _progress_span(progress, 0.0, 0.8))
     if progress:
         progress(0.8, "transfer")
     result = transfer_expressions(fit, deltas, names)
@@ -315,43 +385,74 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
     return result
 
 
+# ------------------------------------------------------------------------------ unsolved parts
+
 # A separate part follows the face only if it comes this close to it (x the solved region's
 # bounding-box diagonal): eyes, teeth and lashes do; a prop or a second body does not.
 FOLLOW_REACH = 0.1
 
 
-def _follow_unsolved(result, vertices, all_tris, used_tris):
-    """Vertices the transfer did not solve follow the solved ones next to them.
+def _follow_unsolved(result, solved_region, all_triangles):
+    """Vertices the transfer did not solve (on no triangle of the solved_region Surface) follow
+    the solved ones next to them (docs/method.md §9).
 
     In a solved part (only on degenerate, skipped triangles) a vertex copies its nearest solved
     vertex. A separate part without landmarks (an eyeball, teeth) moves as a rigid body: the
     rotation and translation that best carry the solved vertices nearest to it (its anchors),
     so it keeps its shape (teeth follow the jaw, eyes the lids around them); a part further than
-    FOLLOW_REACH from the face stays where it is.
+    FOLLOW_REACH from the face stays where it is. all_triangles: every triangle of the target,
+    degenerate ones too (they connect a vertex to its part).
     """
-    solved = np.unique(used_tris)
-    orphans = np.setdiff1d(np.unique(all_tris), solved)
+    vertices, solved = solved_region.vertices, solved_region.used
+    orphans = np.setdiff1d(np.unique(all_triangles), solved)
     if not len(orphans):
         return
     gap, nearest = cKDTree(vertices[solved]).query(vertices[orphans])
     anchors = solved[nearest]
-    parts = vertex_parts(len(vertices), all_tris)
+    parts = vertex_parts(len(vertices), all_triangles)
     in_solved_part = np.isin(parts[orphans], parts[solved])
     result[:, orphans[in_solved_part]] = result[:, anchors[in_solved_part]]
-    reach = FOLLOW_REACH * diagonal(vertices, solved)
+    reach = FOLLOW_REACH * solved_region.diagonal
     for part in np.unique(parts[orphans[~in_solved_part]]):
         mine = parts[orphans] == part
-        if gap[mine].min() > reach:          # away from the face (a prop): it stays
-            continue
-        members, ref = orphans[mine], np.unique(anchors[mine])
-        if len(ref) < 3:                                  # too few anchors to fix a rotation
-            result[:, members] = result[:, ref].mean(axis=1, keepdims=True)
-            continue
-        rest = vertices[ref]
-        centre = rest.mean(axis=0)
-        for e in range(len(result)):
-            moved = rest + result[e, ref]
-            moved_centre = moved.mean(axis=0)
-            rotation, _ = Rotation.align_vectors(moved - moved_centre, rest - centre)
-            result[e, members] = (rotation.apply(vertices[members] - centre) + moved_centre
-                                  - vertices[members])
+        if gap[mine].min() <= reach:          # further away (a prop), it stays
+            _follow_rigidly(result, vertices, orphans[mine], np.unique(anchors[mine]))
+
+
+def _follow_rigidly(result, vertices, members, anchors):
+    """Move the vertices `members` as one rigid body with the solved vertices `anchors`."""
+    if len(anchors) < 3:                                  # too few anchors to fix a rotation
+        result[:, members] = result[:, anchors].mean(axis=1, keepdims=True)
+        return
+    rest = vertices[anchors]
+    centre = rest.mean(axis=0)
+    for e in range(len(result)):
+        moved = rest + result[e, anchors]
+        moved_centre = moved.mean(axis=0)
+        rotation, _ = Rotation.align_vectors(moved - moved_centre, rest - centre)
+        result[e, members] = (rotation.apply(vertices[members] - centre) + moved_centre
+                              - vertices[members])
+
+
+# ------------------------------------------------------------------------------ plumbing
+
+class _Stopwatch:
+    """Seconds per phase: lap(name) records the time since the previous lap."""
+
+    def __init__(self):
+        self.timings = {}
+        self._clock = time.perf_counter()
+
+    def lap(self, name):
+        now = time.perf_counter()
+        self.timings[name] = now - self._clock
+        self._clock = now
+
+
+def _progress_span(progress, start, end):
+    """progress(fraction, message) for a phase that runs from `start` to `end` of the whole
+    (a no-op without a progress callable)."""
+    def report(fraction, message):
+        if progress:
+            progress(start + (end - start) * fraction, message)
+    return report

@@ -1,4 +1,4 @@
-"""Correspondence between the registered source and the target.
+"""Correspondence between the registered source and the target (docs/method.md §7).
 
 Vertex map (ExClone's default): every target vertex is located on the registered source surface
 (triangle + barycentric coordinates). A target triangle whose three corners map plausibly (same
@@ -7,11 +7,11 @@ source, sampled at exactly its own resolution: exact for identical faces and muc
 averaging source gradients where the deformation varies inside one target triangle (eyelids,
 mouth corners).
 
-Triangle pairs (the method's, METHOD.md), used where the vertex map is not plausible: pairs are
-found in both directions so every target triangle in the covered region gets a source
-triangle: each target triangle looks up the source surface at several points inside it (the
-centroid alone costs accuracy where triangles are long, e.g. eyelids and mouth corners), and each
-source triangle's centroid looks up the target surface. A pair counts only if the two triangles
+Triangle pairs (the method's), used where the vertex map is not plausible: pairs are found in
+both directions so every target triangle in the covered region gets a source triangle: each
+target triangle looks up the source surface at several points inside it (the centroid alone
+costs accuracy where triangles are long, e.g. eyelids and mouth corners), and each source
+triangle's centroid looks up the target surface. A pair counts only if the two triangles
 face the same way (normals within 90 degrees, so the upper lip never takes the lower lip's
 gradient) and are closer than a threshold. The result is a weighted pair list.
 """
@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .mesh import triangle_normals
-from .proximity import TriangleSurface, interpolate
+from .mesh import corner_normals
+from .proximity import interpolate
 
 # Barycentric sample points inside a triangle: the centroid and one towards each corner.
 SAMPLES = np.array([[1, 1, 1], [4, 1, 1], [1, 4, 1], [1, 1, 4]], dtype=float)
@@ -40,40 +40,32 @@ class Correspondence:
                              shape=(n_target, n_source))
 
 
-
-def _matches(from_vertices, from_tris, from_normals, to_surface, to_normals, samples, max_distance):
-    """For sample points inside each `from` triangle: (from index, to index) of valid matches."""
-    k = len(samples)
-    corners = from_vertices[from_tris]                                  # (T, 3, 3)
-    points = np.einsum("sk,tkd->tsd", samples, corners).reshape(-1, 3)  # (T*k, 3)
-    _, tri, dist, _ = to_surface.closest(points)
-    owner = np.repeat(np.arange(len(from_tris)), k)
-    ok = (dist < max_distance) & (np.einsum("ij,ij->i", from_normals[owner], to_normals[tri]) > 0)
+def _matches(origin, ids, other, samples, max_distance):
+    """For sample points inside the `origin` Surface's triangles `ids`: (index into ids, `other`
+    triangle) of each valid match (closer than max_distance, facing the same way)."""
+    corners = origin.vertices[origin.triangles[ids]]                    # (m, 3, 3)
+    points = np.einsum("sk,tkd->tsd", samples, corners).reshape(-1, 3)  # (m*k, 3)
+    _, tri, dist, _ = other.closest(points)
+    owner = np.repeat(np.arange(len(ids)), len(samples))
+    facing = np.einsum("ij,ij->i", origin.triangle_normals[ids][owner], other.triangle_normals[tri])
+    ok = (dist < max_distance) & (facing > 0)
     return owner[ok], tri[ok]
 
 
-def triangle_correspondence(source_vertices, source_triangles, target_vertices, target_triangles,
-                            max_distance, source_normal_sign=1.0, target_normal_sign=1.0,
-                            wanted=None):
-    """Weighted triangle pairs between a registered source and the target (same space).
-
-    wanted: optional (T_target,) mask of the target triangles that need pairs (default: all).
-    """
-    wanted = np.ones(len(target_triangles), dtype=bool) if wanted is None else wanted
-    src_n = source_normal_sign * triangle_normals(source_vertices, source_triangles)
-    tgt_n = target_normal_sign * triangle_normals(target_vertices, target_triangles)
-    src_surface = TriangleSurface(source_vertices, source_triangles)
-    tgt_surface = TriangleSurface(target_vertices, target_triangles)
+def triangle_correspondence(source, target, max_distance, wanted=None):
+    """Weighted triangle pairs between a registered source Surface and the target Surface (same
+    space). wanted: optional (T_target,) mask of the target triangles that need pairs (default:
+    all)."""
+    wanted = np.ones(len(target.triangles), dtype=bool) if wanted is None else wanted
     ids = np.flatnonzero(wanted)
-    t_from, s_to = _matches(target_vertices, target_triangles[ids], tgt_n[ids], src_surface, src_n,
-                            SAMPLES, max_distance)
+    t_from, s_to = _matches(target, ids, source, SAMPLES, max_distance)
     t_from = ids[t_from]
-    s_from, t_to = _matches(source_vertices, source_triangles, src_n, tgt_surface, tgt_n,
-                            SAMPLES[:1], max_distance)
+    s_from, t_to = _matches(source, np.arange(len(source.triangles)), target, SAMPLES[:1],
+                            max_distance)
     keep = wanted[t_to]
     s_from, t_to = s_from[keep], t_to[keep]
     # each target sample carries 1/k of its triangle; a source centroid weighs like one sample
-    weights = np.r_[np.full(len(t_from), 1.0 / len(SAMPLES)), np.full(len(s_from), 1.0 / len(SAMPLES))]
+    weights = np.full(len(t_from) + len(s_from), 1.0 / len(SAMPLES))
     return Correspondence(np.r_[t_from, t_to], np.r_[s_to, s_from], weights)
 
 
@@ -89,44 +81,41 @@ class VertexMap:
         return interpolate(values, source_triangles, self.triangle[ids], self.bary[ids])
 
 
-def map_vertices(source_vertices, source_triangles, target_vertices, target_normals, target_ids,
-                 max_distance, source_normal_sign=1.0):
-    """Locate target vertices `target_ids` on the registered source surface.
-
-    target_normals: (n, 3) outward target vertex normals. A vertex maps if the closest source
-    point is nearer than max_distance and faces the same way.
-    """
-    n = len(target_vertices)
+def map_vertices(source, target, max_distance):
+    """Locate the target Surface's vertices on the registered source Surface. A vertex maps if
+    the closest source point is nearer than max_distance and faces the same way."""
+    n = len(target.vertices)
     triangle = np.full(n, -1)
     bary = np.zeros((n, 3))
     valid = np.zeros(n, dtype=bool)
-    surface = TriangleSurface(source_vertices, source_triangles)
-    _, tri, dist, b = surface.closest(target_vertices[target_ids])
-    src_n = source_normal_sign * triangle_normals(source_vertices, source_triangles)[tri]
-    ok = (dist < max_distance) & (np.einsum("ij,ij->i", src_n, target_normals[target_ids]) > 0)
-    triangle[target_ids], bary[target_ids], valid[target_ids] = tri, b, ok
+    ids = target.used
+    _, tri, dist, b = source.closest(target.vertices[ids])
+    facing = np.einsum("ij,ij->i", source.triangle_normals[tri], target.vertex_normals[ids])
+    triangle[ids], bary[ids], valid[ids] = tri, b, (dist < max_distance) & (facing > 0)
     return VertexMap(triangle, bary, valid)
 
 
-def mapped_triangles(vertex_map, source_vertices, source_triangles, target_vertices,
-                     target_triangles, source_normal_sign=1.0, target_normal_sign=1.0, stretch=3.0):
+def mapped_triangles(vertex_map, source, target, stretch=3.0):
     """Target triangles whose corners' images on the source form a plausible triangle: same
     facing, edges and area within `stretch` (squared for the area) of the target's own."""
-    ok = vertex_map.valid[target_triangles].all(axis=1)
-    corners = np.zeros(target_triangles.shape + (3,))
-    ids = target_triangles[ok]
-    corners[ok] = vertex_map.sample(source_vertices, source_triangles, ids.ravel()).reshape(-1, 3, 3)
-    image_edges = np.linalg.norm(corners[:, [1, 2, 0]] - corners, axis=2)
-    own = target_vertices[target_triangles]
-    own_edges = np.linalg.norm(own[:, [1, 2, 0]] - own, axis=2)
+    tris = target.triangles
+    ok = vertex_map.valid[tris].all(axis=1)
+    image = np.zeros(tris.shape + (3,))
+    image[ok] = vertex_map.sample(source.vertices, source.triangles,
+                                  tris[ok].ravel()).reshape(-1, 3, 3)
+    own = target.vertices[tris]
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = image_edges / own_edges
+        ratio = _edge_lengths(image) / _edge_lengths(own)
     ok &= np.all((ratio > 1 / stretch) & (ratio < stretch), axis=1)
-    image_n = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    own_n = np.cross(own[:, 1] - own[:, 0], own[:, 2] - own[:, 0])
-    ok &= source_normal_sign * target_normal_sign * np.einsum("ij,ij->i", image_n, own_n) > 0
+    image_n, own_n = corner_normals(image, normalize=False), corner_normals(own, normalize=False)
+    ok &= source.sign * target.sign * np.einsum("ij,ij->i", image_n, own_n) > 0
     # corners that land in a line make a flat image even when no edge shrank
     with np.errstate(divide="ignore", invalid="ignore"):
         area_ratio = np.linalg.norm(image_n, axis=1) / np.linalg.norm(own_n, axis=1)
     ok &= (area_ratio > 1 / stretch ** 2) & (area_ratio < stretch ** 2)
     return ok
+
+
+def _edge_lengths(corners):
+    """(T, 3) lengths of the edges v1v2, v2v3, v3v1 of triangles given as corners (T, 3, 3)."""
+    return np.linalg.norm(corners[:, [1, 2, 0]] - corners, axis=2)

@@ -1,7 +1,7 @@
 """Deformation gradients of triangle meshes as sparse linear operators.
 
 For triangle j with corners (v1, v2, v3) deformed to (v1', v2', v3'), the gradient Q_j solves
-Q_j V_j = V_j'. Two forms (METHOD.md, part 1):
+Q_j V_j = V_j'. Two forms (docs/method.md §5):
 
 - reduced (the thesis' contribution, the default): V = [v2-v1, v3-v1] (3x2), V = Q R (thin QR),
   V^+ = R^-1 Q^T, Q_j = [v2'-v1', v3'-v1'] V^+. Linear in the three deformed vertices only, so the
@@ -15,9 +15,19 @@ i.e. the gradients stacked transposed, one 3x3 block per triangle; the same G se
 import numpy as np
 import scipy.sparse as sp
 
+from .errors import ExCloneError
+from .mesh import corner_normals, triangle_normals
+
 REDUCED = "reduced"
 AUGMENTED = "augmented"
 FORMULATIONS = (REDUCED, AUGMENTED)
+
+
+def checked_formulation(name):
+    """The formulation `name`, or ExCloneError naming the valid ones."""
+    if name not in FORMULATIONS:
+        raise ExCloneError(f"unknown formulation {name!r}; use one of: {', '.join(FORMULATIONS)}")
+    return name
 
 # Corner weights of the edge matrices: E = corners^T @ B, i.e. edges v2-v1, v3-v1 (and v4-v1).
 _EDGES_3 = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
@@ -26,7 +36,7 @@ _EDGES_4 = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0,
 
 def _fourth_corner(corners):
     """Sumner's 4th vertex for triangles given as corners (..., 3, 3): v1 + n / sqrt(|n|)."""
-    n = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :])
+    n = corner_normals(corners, normalize=False)
     length = np.linalg.norm(n, axis=-1, keepdims=True)
     return corners[..., 0, :] + np.divide(n, np.sqrt(length), out=np.zeros_like(n), where=length > 0)
 
@@ -80,18 +90,16 @@ def gradient_operator(vertices, triangles, formulation=REDUCED):
     neither pull nor produce NaNs).
     """
     n, t = len(vertices), len(triangles)
-    if formulation == REDUCED:
+    if checked_formulation(formulation) == REDUCED:
         pinv, ok = edge_pseudo_inverses(vertices, triangles)
         coeff = _EDGES_3 @ pinv                                        # (T, 3 corners, 3 columns)
         cols = triangles
         n_unknowns = n
-    elif formulation == AUGMENTED:
+    else:
         inv, ok = augmented_inverses(vertices, triangles)
         coeff = _EDGES_4 @ inv                                         # (T, 4 corners, 3 columns)
         cols = np.concatenate([triangles, n + np.arange(t)[:, None]], axis=1)
         n_unknowns = n + t
-    else:
-        raise ValueError(f"unknown formulation {formulation!r}; use one of {FORMULATIONS}")
     corners = cols.shape[1]
     rows = 3 * np.arange(t)[:, None, None] + np.arange(3)[None, None, :]   # (T, 1, 3)
     rows = np.broadcast_to(rows, (t, corners, 3))
@@ -102,7 +110,7 @@ def gradient_operator(vertices, triangles, formulation=REDUCED):
 
 def unknowns_of(vertices, triangles, formulation=REDUCED):
     """The rest-shape unknowns of a formulation: vertices, plus the 4th vertices if augmented."""
-    if formulation == AUGMENTED:
+    if checked_formulation(formulation) == AUGMENTED:
         return np.concatenate([vertices, fourth_vertices(vertices, triangles)])
     return vertices
 
@@ -169,10 +177,7 @@ def normal_completion(vertices, triangles, formulation=REDUCED):
     direction). Without it a smoothness term would pull every triangle towards its neighbours'
     plane, i.e. flatten the face. The augmented form is already I at rest: zeros.
     """
-    if formulation == AUGMENTED:
+    if checked_formulation(formulation) == AUGMENTED:
         return np.zeros((3 * len(triangles), 3))
-    v = vertices[triangles]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    length = np.linalg.norm(n, axis=1, keepdims=True)
-    n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
+    n = triangle_normals(vertices, triangles)
     return stack_gradients(n[:, :, None] * n[:, None, :])

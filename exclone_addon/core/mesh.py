@@ -91,14 +91,19 @@ def write_obj(path, mesh, header=None):
             fh.write("f " + " ".join(str(i + 1) for i in face) + "\n")
 
 
-def triangle_normals(vertices, triangles, normalize=True):
-    """Per-triangle normals; the unnormalised ones have length 2 * area. Degenerate ones stay 0."""
-    v = vertices[triangles]
-    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+def corner_normals(corners, normalize=True):
+    """Normals of triangles given as corners (..., 3, 3): (v2 - v1) x (v3 - v1), so the
+    unnormalised ones have length 2 * area. Degenerate ones stay 0."""
+    n = np.cross(corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :])
     if normalize:
-        length = np.linalg.norm(n, axis=1, keepdims=True)
+        length = np.linalg.norm(n, axis=-1, keepdims=True)
         n = np.divide(n, length, out=np.zeros_like(n), where=length > 0)
     return n
+
+
+def triangle_normals(vertices, triangles, normalize=True):
+    """Per-triangle normals of a mesh (corner_normals of its triangles)."""
+    return corner_normals(vertices[triangles], normalize)
 
 
 def vertex_normals(vertices, triangles):
@@ -115,8 +120,10 @@ def outward_sign(vertices, triangles):
     """+1 if the triangles' winding makes normals point out of the face, else -1.
 
     Normals of a head or of a face shell point away from the enclosed side: the area-weighted
-    sum of n . (p - centre) is positive when they point out.
+    sum of n . (p - centre) is positive when they point out (+1 for no triangles at all).
     """
+    if len(triangles) == 0:
+        return 1.0
     n = triangle_normals(vertices, triangles, normalize=False)
     centroids = vertices[triangles].mean(axis=1)
     centre = centroids.mean(axis=0)

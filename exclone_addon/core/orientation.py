@@ -1,4 +1,5 @@
-"""The face's own frame from its geometry: left-right symmetry plane, forward (nose), up.
+"""The face's own frame from its geometry (docs/method.md §3): left-right symmetry plane, forward
+(nose), up.
 
 Canonical frame (the method's): +X the character's left, +Y up, +Z forward (nose direction).
 Supported inputs: a face in Blender's front view (-Y forward, +Z up), a Y-up import (+Z forward,
@@ -134,12 +135,16 @@ def _protrusion(samples, tree, direction, candidates, radius):
     return height[tip] - height[around].mean(), tip
 
 
-def face_frame(vertices, triangles):
-    """The FaceFrame of a face or head mesh (see module docstring). Raises ExCloneError if unsure."""
+def face_frame(vertices, triangles, search=None):
+    """The FaceFrame of a face or head mesh (see module docstring). Raises ExCloneError if unsure.
+
+    search: the surface's proximity.TriangleSurface if already built (a surface.Surface's).
+    """
     used = np.unique(triangles)
     size = diagonal(vertices, used)
     samples, normals = surface_samples(vertices, triangles)
-    normal, offset, sym_error = symmetry_plane(samples, size, TriangleSurface(vertices, triangles))
+    search = search if search is not None else TriangleSurface(vertices, triangles)
+    normal, offset, sym_error = symmetry_plane(samples, size, search)
     if sym_error > 0.02:
         raise ExCloneError(
             f"could not find the face's left-right symmetry (mirror mismatch {100 * sym_error:.1f}% "

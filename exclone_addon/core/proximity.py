@@ -2,6 +2,8 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .errors import ExCloneError
+
 
 def _dot(x, y):
     """Row-wise dot product of component-first arrays (3, ...)."""
@@ -64,6 +66,8 @@ class TriangleSurface:
     def __init__(self, vertices, triangles, k=12):
         self.vertices = np.asarray(vertices, dtype=np.float64)
         self.triangles = np.asarray(triangles)
+        if len(self.triangles) == 0:
+            raise ExCloneError("no surface to search: the mesh region has no triangles")
         self.k = min(k, len(self.triangles))
         a, b, c = (self.vertices[self.triangles[:, i]] for i in range(3))
         self.tree = cKDTree((a + b + c) / 3)

@@ -1,22 +1,26 @@
-"""Non-rigid registration of the source face onto the target (METHOD.md, "Registration").
+"""Rigid and non-rigid registration of the source face onto the target (docs/method.md §6).
 
-min over the deformed source of w_S E_smooth + w_I E_identity + w_C E_closest, with the landmark
-vertices fixed at their target positions (eliminated from the unknowns). Solved as sparse normal
-equations per coordinate; w_C ramps up over the steps and closest points are recomputed each step.
-The normal matrix changes only on its diagonal between steps, so its fill-reducing ordering is
-computed once and reused (the symbolic part of the factorisation).
+The non-rigid fit minimises, over the deformed source x,
+
+    w_S E_smooth + w_I E_identity + E_rest + w_C (E_closest + E_target + E_border) [+ E_landmarks]
+
+Each energy term below is a function returning its normal-equation contribution (A, b) (the
+term is x^T A x - 2 b^T x + const, one A for x, y and z). w_C ramps up over the schedule's steps
+and the closest points are found again at each step. Landmarks are either eliminated from the
+unknowns (hard: user-placed ones) or pinned by a soft term (automatic ones). The normal matrix
+keeps its sparsity pattern from step to step, so its fill-reducing ordering is computed once.
 """
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial.transform import Rotation
 from scipy.sparse.linalg import splu
+from scipy.spatial.transform import Rotation
 
 from . import deformation
-from .mesh import boundary_edges, diagonal, triangle_areas, vertex_normals
-from .proximity import SegmentSet, TriangleSurface, interpolate
+from .errors import ExCloneError
+from .proximity import interpolate
 
 # Closest-point weights per step after the landmark-only solve; w_S = 1, w_I = 0.001 (the thesis').
 PRESETS = {
@@ -41,7 +45,8 @@ class Schedule:
     @classmethod
     def preset(cls, name):
         if name not in PRESETS:
-            raise ValueError(f"unknown preset {name!r}; use one of {sorted(PRESETS)}")
+            raise ExCloneError(f"unknown registration preset {name!r}; use one of: "
+                               + ", ".join(PRESETS))
         return cls(closest_weights=PRESETS[name])
 
 
@@ -52,6 +57,7 @@ class Registration:
     valid_fraction: float             # share of region vertices in the overlap (valid closest point)
     history: list = field(default_factory=list)   # mean distance before each w_C step, and at the end
     # (before each step: over all region vertices with a valid closest point of that step)
+    surface: object = None            # surface.Surface of the registered source region
 
 
 class ReusedOrderingSolver:
@@ -61,7 +67,13 @@ class ReusedOrderingSolver:
         self.perm = None
 
     def solve(self, matrix, rhs):
-        matrix = sp.csc_matrix(matrix)
+        try:
+            return self._solve(sp.csc_matrix(matrix), rhs)
+        except RuntimeError as exc:       # SuperLU: "Factor is exactly singular"
+            raise ExCloneError("the registration's equations have no unique solution (the source "
+                               "mesh has triangles too thin to deform); clean up the mesh") from exc
+
+    def _solve(self, matrix, rhs):
         if self.perm is None:
             lu = splu(matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options={"SymmetricMode": True})
@@ -77,58 +89,43 @@ class ReusedOrderingSolver:
         return lu.solve(rhs[p])[inv]
 
 
-def closest_valid_points(points, normals, on_border, surface, surface_normals, border,
-                         border_edges, max_distance, border_distance):
-    """Closest target points for source points.
-
-    Interior source points take the closest surface point whose normal is within 90 degrees,
-    not further than max_distance and not on the target's open border. Source points on their
-    own open border (eye, mouth, outer edge) take the closest point on the target's border
-    edges instead, if it is nearer than border_distance: borders match borders, so eyelid
-    margins and lips do not slide. Returns (closest points, valid, distances).
-    """
-    closest, tri, dist, bary = surface.closest(points)
-    n_target = interpolate(surface_normals, surface.triangles, tri, bary)
-    valid = (np.einsum("ij,ij->i", n_target, normals) > 0) & (dist < max_distance)
-    valid &= ~border[surface.triangles[tri]].any(axis=1)
-    if on_border.any():
-        b_closest, _, b_dist, _ = border_edges.closest(points[on_border])
-        closest[on_border] = b_closest
-        dist = dist.copy()
-        dist[on_border] = b_dist
-        valid[on_border] = b_dist < border_distance
-    return closest, valid, dist
-
+# ------------------------------------------------------------------------------ rigid alignment
 
 def similarity_transform(source_points, target_points):
-    """Least-squares similarity (R, s, t) with target ~ s R source + t."""
+    """Least-squares similarity (R, s, t) with target ~ s R source + t.
+
+    ExCloneError if either point set has no extent (all its points coincide): no rotation or
+    scale can be read from it.
+    """
     src_c, dst_c = source_points.mean(axis=0), target_points.mean(axis=0)
     a, b = source_points - src_c, target_points - dst_c
+    for points, spread, what in ((source_points, a, "source"), (target_points, b, "target")):
+        if not np.abs(spread).max(initial=0.0) > 1e-12 * np.abs(points).max(initial=0.0):
+            raise ExCloneError(f"cannot align the faces: the {what} points all coincide; "
+                               "landmarks must be spread over the face")
     rotation, _ = Rotation.align_vectors(b, a)
     r = rotation.as_matrix()
-    s = float(np.einsum("ij,ij->", b, a @ r.T) / max(np.einsum("ij,ij->", a, a), 1e-300))
+    s = float(np.einsum("ij,ij->", b, a @ r.T) / np.einsum("ij,ij->", a, a))
     return r, s, dst_c - s * r @ src_c
 
 
-def similarity_icp(source_points, source_normals, target_vertices, target_triangles,
-                   target_normal_sign=1.0, max_distance=np.inf, iterations=100, sample=2000,
-                   tolerance=1e-3):
-    """Refine a rough alignment of the source points to the target surface by a similarity.
+def similarity_icp(source_points, source_normals, target, max_distance=np.inf, iterations=100,
+                   sample=2000, tolerance=1e-3):
+    """Refine a rough alignment of the source points to the target Surface by a similarity.
 
     Each iteration pairs (up to `sample` of) the source points with their closest target points
     (normals within 90 degrees, within max_distance, the worst 10% trimmed) and solves the
     least-squares similarity; it stops when the mean distance improves by less than `tolerance`
     (relative). Returns (R, s, t) to apply on top of the current positions.
     """
-    surface = TriangleSurface(target_vertices, target_triangles)
-    normals_t = target_normal_sign * vertex_normals(target_vertices, target_triangles)
     total_r, total_s, total_t = np.eye(3), 1.0, np.zeros(3)
     step = max(1, len(source_points) // sample)
     points, normals = source_points[::step].copy(), source_normals[::step].copy()
     previous = np.inf
     for _ in range(iterations):
-        closest, tri, dist, bary = surface.closest(points)
-        facing = np.einsum("ij,ij->i", interpolate(normals_t, target_triangles, tri, bary), normals)
+        closest, tri, dist, bary = target.closest(points)
+        facing = np.einsum("ij,ij->i", interpolate(target.vertex_normals, target.triangles, tri,
+                                                   bary), normals)
         ok = (facing > 0) & (dist < max_distance)
         if ok.sum() < 10:
             break
@@ -144,188 +141,226 @@ def similarity_icp(source_points, source_normals, target_vertices, target_triang
     return total_r, total_s, total_t
 
 
-def register(source_vertices, source_triangles, target_vertices, target_triangles,
-             landmark_ids, landmark_positions, *, formulation=deformation.REDUCED,
-             schedule=None, source_normal_sign=1.0, target_normal_sign=1.0, progress=None):
-    """Deform the source (already aligned to the target's frame) onto the target surface.
+# ------------------------------------------------------------------------------ closest points
 
-    source_triangles: the source region to register (other source vertices just follow the
-    solution as unconstrained unknowns; vertices on no triangle stay where they are).
-    landmark_ids: source vertex ids fixed at landmark_positions (target coordinates).
-    *_normal_sign: +1 or -1 so that both meshes' normals point out of the face.
+def closest_valid_points(points, normals, on_border, target, max_distance, border_distance):
+    """Closest points on the target Surface for source points (their outward normals, and
+    whether each is on the source's open border).
+
+    Interior source points take the closest surface point whose normal is within 90 degrees,
+    not further than max_distance and not on the target's open border. Source points on their
+    own open border (eye, mouth, outer edge) take the closest point on the target's border
+    edges instead, if it is nearer than border_distance: borders match borders, so eyelid
+    margins and lips do not slide. Returns (closest points, valid, distances).
+    """
+    closest, tri, dist, bary = target.closest(points)
+    n_target = interpolate(target.vertex_normals, target.triangles, tri, bary)
+    valid = (np.einsum("ij,ij->i", n_target, normals) > 0) & (dist < max_distance)
+    valid &= ~target.on_border[target.triangles[tri]].any(axis=1)
+    if on_border.any():
+        b_closest, _, b_dist, _ = target.border_search.closest(points[on_border])
+        closest[on_border] = b_closest
+        dist = dist.copy()
+        dist[on_border] = b_dist
+        valid[on_border] = b_dist < border_distance
+    return closest, valid, dist
+
+
+def _source_to_target(fitted, target, schedule):
+    """closest_valid_points of the fitted source region's vertices."""
+    region = fitted.used
+    return closest_valid_points(fitted.vertices[region], fitted.vertex_normals[region],
+                                fitted.on_border[region], target,
+                                schedule.max_distance * target.diagonal,
+                                schedule.border_distance * target.diagonal)
+
+
+# ------------------------------------------------------------------------------ energy terms
+
+def smoothness_term(source, grad, formulation):
+    """E_smooth = ||D (G x + C)||^2: every triangle's gradient like its edge neighbours' (D the
+    neighbour difference; C the normal completion, so the rest shape costs nothing)."""
+    difference = deformation.neighbour_difference(source.triangles)
+    smooth = difference @ grad
+    completion = deformation.normal_completion(source.vertices, source.triangles, formulation)
+    return smooth.T @ smooth, smooth.T @ -(difference @ completion)
+
+
+def identity_term(source, grad):
+    """E_identity = ||G x - I||^2: every triangle's gradient near the identity."""
+    return grad.T @ grad, grad.T @ deformation.stacked_identity(len(source.triangles))
+
+
+def rest_term(source, rest):
+    """E_rest: vertices on no region triangle are held where they are (a tiny pull that keeps
+    the system definite; they take no part in the fit)."""
+    outside = np.zeros(len(rest))
+    outside[:len(source.vertices)] = 1.0          # 4th vertices (augmented) are all on the region
+    outside[source.used] = 0.0
+    return sp.diags(outside), outside[:, None] * rest
+
+
+def closest_point_term(fitted, target, schedule, n_unknowns):
+    """E_closest = sum over region vertices with a valid closest target point of ||x_i - c_i||^2.
+    Also returns the mean distance of all region vertices to their closest points."""
+    closest, valid, distance = _source_to_target(fitted, target, schedule)
+    weight = np.zeros(n_unknowns)
+    weight[fitted.used[valid]] = 1.0
+    points = np.zeros((n_unknowns, 3))
+    points[fitted.used] = closest
+    return (sp.diags(weight), weight[:, None] * points), float(distance.mean())
+
+
+def target_pull_term(fitted, pulling, max_distance, n_unknowns):
+    """E_target = sum over target points p of w_p ||B_p x - p||^2, B_p the barycentric point of
+    the fitted source surface closest to p (symmetric closest points: without it the source can
+    settle on part of the target and leave the rest uncovered). Points that land on the source's
+    open border, face the other way or are further than max_distance are left out (the target
+    may extend past the source, e.g. the back of a head). pulling: (points, normals, weights)."""
+    points, normals, weights = pulling
+    _, tri, dist, bary = fitted.closest(points)
+    corners = fitted.triangles[tri]
+    facing = np.einsum("ij,ij->i", interpolate(fitted.vertex_normals, fitted.triangles, tri, bary),
+                       normals)
+    ok = (dist < max_distance) & (facing > 0) & ~fitted.on_border[corners].any(axis=1)
+    rows = np.repeat(np.flatnonzero(ok), 3)
+    b = sp.csr_matrix((bary[ok].ravel(), (rows, corners[ok].ravel())),
+                      shape=(len(points), n_unknowns))
+    return _weighted_normal_equations(b, np.where(ok, weights, 0.0), points)
+
+
+def border_pull_term(fitted, pulling, max_distance, n_unknowns):
+    """E_border: like E_target, for the target's border vertices onto the fitted source's
+    border edges (borders match borders). pulling: (points, weights)."""
+    points, weights = pulling
+    _, edge, dist, t = fitted.border_search.closest(points)
+    ok = dist < max_distance
+    ends = fitted.border_edges[edge[ok]]
+    rows = np.repeat(np.flatnonzero(ok), 2)
+    b = sp.csr_matrix((np.stack([1 - t[ok], t[ok]], axis=1).ravel(), (rows, ends.ravel())),
+                      shape=(len(points), n_unknowns))
+    return _weighted_normal_equations(b, np.where(ok, weights, 0.0), points)
+
+
+def landmark_term(landmark_ids, landmark_positions, n_unknowns):
+    """E_landmarks = sum ||x_l - p_l||^2: soft landmarks, pinned to their target positions."""
+    pin = np.zeros(n_unknowns)
+    pin[landmark_ids] = 1.0
+    positions = np.zeros((n_unknowns, 3))
+    positions[landmark_ids] = landmark_positions
+    return sp.diags(pin), pin[:, None] * positions
+
+
+def _weighted_normal_equations(b, weights, points):
+    """(B^T W B, B^T W p) of sum_p w_p ||B_p x - p||^2."""
+    w = sp.diags(weights)
+    return b.T @ w @ b, b.T @ (w @ points)
+
+
+def _weighted_sum(*weighted_terms):
+    """sum of w * (A, b) over (w, (A, b)) pairs."""
+    matrix = sum(w * term[0] for w, term in weighted_terms)
+    rhs = sum(w * term[1] for w, term in weighted_terms)
+    return matrix, rhs
+
+
+def _solve_with_fixed(solver, matrix, rhs, x, fixed_ids):
+    """x with the unknowns fixed_ids kept as they are (hard landmarks, eliminated) and the
+    others solved."""
+    free = np.ones(len(x), dtype=bool)
+    free[fixed_ids] = False
+    matrix = sp.csr_matrix(matrix)
+    x = x.copy()
+    x[free] = solver.solve(matrix[free][:, free], rhs[free] - matrix[free][:, ~free] @ x[~free])
+    return x
+
+
+# ------------------------------------------------------------------------------ the schedule
+
+def register(source, target, landmark_ids, landmark_positions, *, formulation=deformation.REDUCED,
+             schedule=None, progress=None):
+    """Deform the source (a surface.Surface already aligned to the target's frame, its triangles
+    the region to register) onto the target Surface; returns a Registration.
+
+    Source vertices on no region triangle stay where they are. landmark_ids: source vertex ids
+    that go to landmark_positions (target coordinates), hard or soft as the schedule says.
     """
     schedule = schedule or Schedule()
-    # Work in units of the source's mean edge length: the gradient terms are unitless, so
-    # this keeps the weights' meaning the same for any mesh scale and density.
-    edges = source_vertices[source_triangles[:, [1, 2, 0]]] - source_vertices[source_triangles]
-    unit = float(np.linalg.norm(edges, axis=2).mean())
-    source_vertices = source_vertices / unit
-    target_vertices = target_vertices / unit
-    landmark_positions = np.asarray(landmark_positions) / unit
-    n = len(source_vertices)
-    t = len(source_triangles)
-    diag = diagonal(target_vertices, np.unique(target_triangles))
-    region = np.unique(source_triangles)
-
-    grad, _ = deformation.gradient_operator(source_vertices, source_triangles, formulation)
-    difference = deformation.neighbour_difference(source_triangles)
-    smooth = difference @ grad
-    # E_S = || D (G x + C) ||^2 with C the normal completion, so the rest shape costs nothing
-    smooth_rhs = -(difference @ deformation.normal_completion(source_vertices, source_triangles,
-                                                                formulation))
-    n_unknowns = grad.shape[1]
-    rest = deformation.unknowns_of(source_vertices, source_triangles, formulation)
-    identity_rhs = deformation.stacked_identity(t)
-
-    # Vertices not in the region get a tiny pull to where they are, so the system stays
-    # definite; landmark vertices are eliminated.
-    outside = np.ones(n_unknowns, dtype=bool)
-    outside[region] = False
-    if formulation == deformation.AUGMENTED:
-        outside[n:] = False
-    hard = np.zeros(n_unknowns, dtype=bool)
-    hard[landmark_ids] = True
-    nothing = np.zeros(n_unknowns, dtype=bool)
+    _check_registrable(source, target)
+    grad, _ = deformation.gradient_operator(source.vertices, source.triangles, formulation)
+    rest = deformation.unknowns_of(source.vertices, source.triangles, formulation)
+    # The gradient terms are unitless, the point terms squared lengths: weighting the former by
+    # the squared mean edge length measures distances in source edges, which keeps the weights'
+    # meaning the same for any mesh scale and density.
+    unit2 = source.mean_edge_length ** 2
+    base = _weighted_sum(
+        (schedule.smooth_weight * unit2, smoothness_term(source, grad, formulation)),
+        (schedule.identity_weight * unit2, identity_term(source, grad)),
+        (1.0, rest_term(source, rest)))
+    pins = landmark_term(landmark_ids, landmark_positions, len(rest))
+    pulling, border_pulling = _pulling_points(source, target)
     x = rest.copy()
     x[landmark_ids] = landmark_positions
-    landmark_targets = np.zeros((n_unknowns, 3))
-    landmark_targets[landmark_ids] = landmark_positions
-
-    base = (schedule.smooth_weight * (smooth.T @ smooth)
-            + schedule.identity_weight * (grad.T @ grad)
-            + sp.diags(outside.astype(float))).tocsr()
-    base_rhs = (schedule.smooth_weight * (smooth.T @ smooth_rhs)
-                + schedule.identity_weight * (grad.T @ identity_rhs) + outside[:, None] * rest)
-
-    surface = TriangleSurface(target_vertices, target_triangles)
-    target_normals = target_normal_sign * vertex_normals(target_vertices, target_triangles)
-    target_edges = boundary_edges(target_triangles)
-    target_border_ids = np.unique(target_edges)
-    border = np.zeros(len(target_vertices), dtype=bool)
-    border[target_border_ids] = True
-    source_border_edges = boundary_edges(source_triangles)
-    source_border = np.zeros(n, dtype=bool)
-    source_border[source_border_edges.ravel()] = True
-    target_border_edges = SegmentSet(target_vertices, target_edges)
-    # Target points pull the source too (symmetric closest points): without it the source can
-    # settle on part of the target and leave the rest uncovered. Each target vertex weighs its
-    # share of the surface in units of a source vertex's share, so density does not matter.
-    target_ids = np.setdiff1d(np.unique(target_triangles), target_border_ids)
-    source_area = _vertex_areas(source_vertices, source_triangles)[region].mean()
-    target_share = _vertex_areas(target_vertices, target_triangles)[target_ids] / source_area
-    # border vertices weigh their share of the border's length in source edge lengths (= 1)
-    target_border_share = _border_lengths(target_vertices, target_edges)[target_border_ids]
-    solver = ReusedOrderingSolver()
-    history = []
+    solver, history = ReusedOrderingSolver(), []
     # the landmark-only solve starts a fit from hard landmarks; soft ones start from the surfaces
     steps = ((0.0,) if schedule.landmark_weight is None else ()) + tuple(schedule.closest_weights)
-    valid = np.zeros(n, dtype=bool)
     with ThreadPoolExecutor(max_workers=1) as pool:
         for k, w_c in enumerate(steps):
             if progress:
                 progress(k / len(steps), f"registration step {k + 1}/{len(steps)}")
-            data = np.zeros(n_unknowns)
-            rhs = base_rhs.copy()
+            matrix, rhs = base
             if w_c > 0:
-                normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
-                # the target-to-source pull is computed beside the source-to-target closest points
-                # (numpy and the KD-tree release the GIL, so the two use both cores)
-                pull_job = pool.submit(_target_pull, x[:n], source_triangles, normals,
-                                       source_border, target_vertices[target_ids],
-                                       target_normals[target_ids], target_share,
-                                       schedule.max_distance * diag, n_unknowns)
-                closest, valid_region, distance = closest_valid_points(
-                    x[region], normals[region], source_border[region], surface, target_normals,
-                    border, target_border_edges, schedule.max_distance * diag,
-                    schedule.border_distance * diag)
-                valid = np.zeros(n, dtype=bool)
-                valid[region[valid_region]] = True
-                targets = np.zeros((n_unknowns, 3))
-                targets[region] = closest
-                data[:n] = w_c * valid
-                rhs += data[:, None] * targets
-                history.append(float(distance.mean()) * unit)
-                border_pull, border_rhs = _border_pull(x[:n], source_border_edges,
-                                                       target_vertices[target_border_ids],
-                                                       target_border_share,
-                                                       schedule.border_distance * diag, n_unknowns)
-                pull, pull_rhs = pull_job.result()
-                pull = pull + border_pull
-                pull_rhs = pull_rhs + border_rhs
-                matrix = (base + sp.diags(data) + w_c * pull).tocsr()
-                rhs += w_c * pull_rhs
+                fit_terms, distance = _fit_terms(source.moved(x[:len(source.vertices)]), target,
+                                                 pulling, border_pulling, schedule, len(x), pool)
+                history.append(distance)
+                matrix, rhs = _weighted_sum((1.0, (matrix, rhs)), (w_c, fit_terms))
+            if schedule.landmark_weight is None:
+                x = _solve_with_fixed(solver, matrix, rhs, x, landmark_ids)
             else:
-                matrix = base
-            released = schedule.landmark_weight is not None
-            fixed = nothing if released else hard
-            if released:
-                pin = np.where(hard, schedule.landmark_weight * max(w_c, 1.0), 0.0)
-                matrix = matrix + sp.diags(pin)
-                rhs = rhs + pin[:, None] * landmark_targets
-            if not fixed.any():
-                x = solver.solve(matrix, rhs)
-                continue
-            free = ~fixed
-            matrix = sp.csr_matrix(matrix)
-            x[free] = solver.solve(matrix[free][:, free],
-                                   rhs[free] - matrix[free][:, fixed] @ x[fixed])
-    # The fit error counts where the surfaces overlap: source parts that reach past the target
-    # (a neck below a head's cut) have no closest point to be measured against.
-    normals = source_normal_sign * vertex_normals(x[:n], source_triangles)
-    _, overlap, distances = closest_valid_points(
-        x[region], normals[region], source_border[region], surface, target_normals, border,
-        target_border_edges, schedule.max_distance * diag, schedule.border_distance * diag)
+                pin = schedule.landmark_weight * max(w_c, 1.0)
+                x = solver.solve(*_weighted_sum((1.0, (matrix, rhs)), (pin, pins)))
+    return _registration(source.moved(x[:len(source.vertices)]), target, schedule, history)
+
+
+def _check_registrable(source, target):
+    if len(source.triangles) == 0 or len(target.triangles) == 0:
+        raise ExCloneError("nothing to register: the landmarks lie on no face of the "
+                           f"{'source' if len(source.triangles) == 0 else 'target'} mesh")
+    if not source.mean_edge_length > 0 or not target.diagonal > 0:
+        raise ExCloneError("nothing to register: the face has no extent")
+
+
+def _pulling_points(source, target):
+    """The target points that pull the source, with their weights: interior vertices weigh
+    their share of the surface in units of a source vertex's share, border vertices their share
+    of the border's length in source edge lengths (so density does not matter)."""
+    interior = np.setdiff1d(target.used, target.border_ids)
+    share = target.vertex_areas[interior] / source.vertex_areas[source.used].mean()
+    border = target.border_ids
+    return ((target.vertices[interior], target.vertex_normals[interior], share),
+            (target.vertices[border], target.border_lengths[border] / source.mean_edge_length))
+
+
+def _fit_terms(fitted, target, pulling, border_pulling, schedule, n_unknowns, pool):
+    """E_closest + E_target + E_border at the current fit, and the mean closest-point distance."""
+    _ = fitted.vertex_normals       # computed once, before both threads read them
+    # the target-to-source pull is computed beside the source-to-target closest points (numpy
+    # and the KD-tree release the GIL, so the two use both cores)
+    pull_job = pool.submit(target_pull_term, fitted, pulling,
+                           schedule.max_distance * target.diagonal, n_unknowns)
+    closest, distance = closest_point_term(fitted, target, schedule, n_unknowns)
+    border = border_pull_term(fitted, border_pulling, schedule.border_distance * target.diagonal,
+                              n_unknowns)
+    return _weighted_sum((1.0, closest), (1.0, pull_job.result()), (1.0, border)), distance
+
+
+def _registration(registered, target, schedule, history):
+    """The Registration of the final fit (history: the mean distances before each step). Its
+    error counts where the surfaces overlap: source parts that reach past the target (a neck
+    below a head's cut) have no closest point to be measured against."""
+    if not np.all(np.isfinite(registered.vertices)):
+        raise ExCloneError("registration produced invalid values; check the meshes and landmarks")
+    _, overlap, distances = _source_to_target(registered, target, schedule)
     mean_distance = float(distances[overlap].mean()) if overlap.any() else float(distances.mean())
-    history.append(mean_distance * unit)
-    return Registration(
-        vertices=x[:n] * unit,
-        mean_distance=mean_distance * unit,
-        valid_fraction=float(overlap.mean()) if len(region) else 0.0,
-        history=history,
-    )
-
-
-def _vertex_areas(vertices, triangles):
-    """A third of the area of every triangle around each vertex."""
-    third = triangle_areas(vertices, triangles) / 3
-    return np.bincount(triangles.ravel(), np.repeat(third, 3), minlength=len(vertices))
-
-
-def _target_pull(source, source_triangles, source_normals, source_border, points, point_normals,
-                 weights, max_distance, n_unknowns):
-    """Normal-equation terms (B^T W B, B^T W p) pulling the source surface onto target points.
-
-    B picks, for each target point, the barycentric combination of the source triangle closest
-    to it; points that land on the source's open border, face the other way or are too far are
-    left out (the target may extend past the source, e.g. the back of a head).
-    """
-    surface = TriangleSurface(source, source_triangles)
-    _, tri, dist, bary = surface.closest(points)
-    corners = source_triangles[tri]
-    facing = np.einsum("ij,ij->i", interpolate(source_normals, source_triangles, tri, bary),
-                       point_normals)
-    ok = (dist < max_distance) & (facing > 0) & ~source_border[corners].any(axis=1)
-    rows = np.repeat(np.flatnonzero(ok), 3)
-    b = sp.csr_matrix((bary[ok].ravel(), (rows, corners[ok].ravel())),
-                      shape=(len(points), n_unknowns))
-    w = sp.diags(np.where(ok, weights, 0.0))
-    return (b.T @ w @ b), b.T @ (w @ points)
-
-
-def _border_lengths(vertices, edges):
-    """Half the length of the border edges at each vertex."""
-    length = np.linalg.norm(vertices[edges[:, 1]] - vertices[edges[:, 0]], axis=1) / 2
-    return np.bincount(edges.ravel(), np.repeat(length, 2), minlength=len(vertices))
-
-
-def _border_pull(source, source_border_edges, points, weights, max_distance, n_unknowns):
-    """Like _target_pull, for the target's border vertices onto the source's border edges."""
-    segments = SegmentSet(source, source_border_edges)
-    _, edge, dist, t = segments.closest(points)
-    ok = dist < max_distance
-    ends = source_border_edges[edge[ok]]
-    rows = np.repeat(np.flatnonzero(ok), 2)
-    b = sp.csr_matrix((np.stack([1 - t[ok], t[ok]], axis=1).ravel(), (rows, ends.ravel())),
-                      shape=(len(points), n_unknowns))
-    w = sp.diags(np.where(ok, weights, 0.0))
-    return (b.T @ w @ b), b.T @ (w @ points)
+    return Registration(registered.vertices, mean_distance, float(overlap.mean()),
+                        history + [mean_distance], registered)

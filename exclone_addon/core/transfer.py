@@ -1,4 +1,5 @@
-"""Deformation transfer (Sumner & Popovic 2004) with one factorisation for all expressions.
+"""Deformation transfer (Sumner & Popovic 2004; docs/method.md §8) with one factorisation for
+all expressions.
 
 For target displacements d: min sum over target triangles w_t ||S_t - T_t(x0 + d)||_F^2, where
 S_t is the source gradient the correspondence gives triangle t (weight w_t), and the identity
@@ -13,11 +14,11 @@ correspondence stay where they are.
 """
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 from scipy.sparse.linalg import splu
 
 from . import deformation
-from .mesh import vertex_adjacency
+from .errors import ExCloneError
+from .mesh import vertex_parts
 
 
 class Transfer:
@@ -34,12 +35,15 @@ class Transfer:
         # a whisper of regularisation keeps the per-part translations definite; they are set
         # explicitly afterwards (see module docstring)
         eps = 1e-10 * normal.diagonal().mean()
-        self.factor = splu(normal + eps * sp.identity(normal.shape[0], format="csc"),
-                           permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
-                           options={"SymmetricMode": True})
+        try:
+            self.factor = splu(normal + eps * sp.identity(normal.shape[0], format="csc"),
+                               permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
+                               options={"SymmetricMode": True})
+        except RuntimeError as exc:       # SuperLU: "Factor is exactly singular"
+            raise ExCloneError("the transfer's equations have no unique solution (the target "
+                               "mesh's triangles are too thin); clean up the mesh") from exc
         self.rest_gradients = self.grad @ self.rest                             # (3T, 3)
-        _, self.parts = connected_components(vertex_adjacency(self.n, target_triangles),
-                                             directed=False)
+        self.parts = vertex_parts(self.n, target_triangles)
 
     def __call__(self, target_gradients, anchor_displacements=None, anchor_vertices=None):
         """target_gradients: (E, T, 3, 3) the source gradient each target triangle should take
