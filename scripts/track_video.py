@@ -17,19 +17,18 @@ on each, no temporal filtering, intrinsics from each image's size unless given.
 from the .blend (or .fbx/.glb, or a folder with neutral.obj + one OBJ per shape), nothing is
 written to it. Exit code 0 on success; otherwise 1 and one line on stderr.
 """
-import argparse
 import hashlib
 import json
-import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(REPO))
-from exclone_addon.cli import run_main  # noqa: E402
+sys.path[:0] = [str(REPO), str(REPO / "scripts")]  # exclone_addon, exclone_cli
+from exclone_cli import Outputs, Parser, check_output_writable, number, run_main  # noqa: E402
 from exclone_addon.core import capture, data, face_models, retarget, tracker_model  # noqa: E402
 from exclone_addon.core.session import FaceTrackingSession  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
@@ -41,45 +40,32 @@ DEFAULT_CAMERA_FRAMES = 300
 PROG = "track_video"
 
 
-class _Parser(argparse.ArgumentParser):
-    def error(self, message):
-        raise ExCloneError(message)
-
-
 def parse_args(argv):
-    parser = _Parser(prog="track_video.py", description=__doc__.split("\n\n")[0])
+    parser = Parser(prog="track_video.py", description=__doc__.split("\n\n")[0])
     parser.add_argument("input", help="video file, camera index or folder of images")
     parser.add_argument("--avatar", metavar="FILE.blend[:Object]",
                         help="mesh with shape keys whose weights are solved per frame (needs bpy)")
     parser.add_argument("--out", metavar="OUT.json",
                         help="output (default: out/<input name>_track.json)")
     for axis in ("fx", "fy", "cx", "cy"):
-        parser.add_argument(f"--camera-{axis}", type=float, metavar="PX",
+        parser.add_argument(f"--camera-{axis}", type=number(positive=axis in ("fx", "fy")),
+                            metavar="PX",
                             help="camera intrinsics in pixels (default: f = max(width, height), "
                                  "the image centre)")
-    parser.add_argument("--frames", type=int, metavar="N",
+    parser.add_argument("--frames", type=number(int, at_least=1), metavar="N",
                         help=f"stop after N frames (a camera: default {DEFAULT_CAMERA_FRAMES})")
-    parser.add_argument("--fps", type=float, metavar="R",
+    parser.add_argument("--fps", type=number(positive=True), metavar="R",
                         help="frame rate given to a folder's images (default 30)")
-    parser.add_argument("--calibration-frames", type=int, default=30, metavar="N",
+    parser.add_argument("--calibration-frames", type=number(int, at_least=1), default=30,
+                        metavar="N",
                         help="frames with a face that calibrate the actor's neutral (default 30)")
     parser.add_argument("--still-images", action="store_true",
                         help="treat every frame as an unrelated photograph")
-    args = parser.parse_args(argv)
-    if args.frames is not None and args.frames < 1:
-        raise ExCloneError(f"--frames must be at least 1, got {args.frames}")
-    if args.fps is not None and args.fps <= 0:
-        raise ExCloneError(f"--fps must be positive, got {args.fps}")
-    if args.calibration_frames < 1:
-        raise ExCloneError(f"--calibration-frames must be at least 1, got {args.calibration_frames}")
-    for axis in ("fx", "fy"):
-        value = getattr(args, f"camera_{axis}")
-        if value is not None and value <= 0:
-            raise ExCloneError(f"--camera-{axis} must be positive, got {value:g}")
-    return args
+    return parser.parse_args(argv)
 
 
 def output_path(args):
+    """The JSON's path; ExCloneError at once if it cannot be written."""
     if args.out:
         out = Path(args.out)
     else:
@@ -87,27 +73,21 @@ def output_path(args):
         out = Path("out") / f"{name}_track.json"
     if out.suffix.lower() != ".json":
         raise ExCloneError(f"--out must name a .json file, got {out}")
-    if out.is_dir():
-        raise ExCloneError(f"output {out} is a folder")
+    check_output_writable(out)
     return out
 
 
 def load_avatar(spec):
-    """AvatarRig of a mesh with shape keys, read with Blender (bpy) through the batch loader."""
+    """(AvatarRig, description) of a mesh with shape keys, read with Blender (bpy)."""
     try:
-        import bpy  # noqa: F401
+        from exclone_addon.blender import files
     except ImportError:
         raise ExCloneError("--avatar needs Blender's bpy module: run with .venv/bin/python or "
                            "blender -b --python") from None
-    from exclone_addon.batch import load_source
-    try:
-        source, description, _ = load_source(spec)
-    except ExCloneError as exc:
-        # the batch loader calls what it reads a "source"
-        raise ExCloneError("--avatar " + str(exc).removeprefix("source ")) from None
+    source = files.load_source(spec, role="--avatar")
     rig = retarget.AvatarRig.from_arrays(source.mesh.vertices, source.mesh.triangles(), source.deltas,
                                      source.names)
-    return rig, description
+    return rig, source.description
 
 
 def _file_digest(path):
@@ -152,78 +132,133 @@ def frame_record(frame, result):
     return record
 
 
-def run(args):
-    out = output_path(args)
-    avatar, avatar_description = (None, None)
-    if args.avatar:
-        avatar, avatar_description = load_avatar(args.avatar)
+def _session(args, source, avatar):
+    """(camera or None, FaceTrackingSession): the given intrinsics, else the first frame's
+    (None for still images without given intrinsics: each frame's own)."""
     given = {axis: getattr(args, f"camera_{axis}") for axis in ("fx", "fy", "cx", "cy")}
-    records, sizes = [], set()
-    with capture.open_source(args.input, frame_rate=args.fps) as source:
-        width, height = source.frame_size
-        camera = None
-        if any(v is not None for v in given.values()) or not args.still_images:
-            camera = Camera.from_image_size(width, height, **given)
-        session = FaceTrackingSession(avatar=avatar, camera=camera,
-                                      calibration_frames=args.calibration_frames,
-                                      still_images=args.still_images)
-        limit = args.frames or (DEFAULT_CAMERA_FRAMES if source.is_live else None)
-        start = time.perf_counter()
-        while limit is None or len(records) < limit:
-            frame = source.read()
-            if frame is None:
-                break
-            if not args.still_images and (frame.image.shape[1], frame.image.shape[0]) != (width, height):
-                raise ExCloneError(f"frame {frame.index} is {frame.image.shape[1]}x"
-                                   f"{frame.image.shape[0]}, the first was {width}x{height}; "
-                                   "give --still-images for images of different sizes")
-            sizes.add((frame.image.shape[1], frame.image.shape[0]))
-            step_start = time.perf_counter()
-            result = session.step(frame.image, frame.timestamp)
-            record = frame_record(frame, result)
-            record["stage_ms"]["total"] = round(1000 * (time.perf_counter() - step_start), 3)
-            if camera is None:
-                record["camera"] = _camera_dict(session.camera)
-            records.append(record)
-        elapsed = time.perf_counter() - start
-        header = {
-            "format": FORMAT, "format_version": FORMAT_VERSION,
-            "source": {"input": args.input, "description": source.description,
-                       "is_live": source.is_live, "frame_rate": source.frame_rate,
-                       "frame_size": [width, height],
-                       "frame_sizes_vary": len(sizes) > 1},
-            # still images without given intrinsics: each frame's own, in its record
-            "camera": dict(_camera_dict(camera) if camera else {"per_frame": True},
-                           given=sorted(k for k, v in given.items() if v is not None)),
-            "conventions": {
-                "pixels": "OpenCV: the centre of pixel (column i, row j) is (i, j)",
-                "landmarks": "468 MediaPipe FaceMesh points: x, y image pixels, z FaceMesh depth "
-                             "(pixels, smaller towards the camera)",
-                "ibug68": "iBUG 300-W 68-point order (0-based), image pixels",
-                "head_pose": "model (canonical face, cm, +Y up, looking along +Z) -> camera "
-                             "(x right, y down, z forward); quaternion x, y, z, w",
-                "head_rotation_blender": "relative to the calibrated neutral, Blender axes "
-                                         "(+Z up, -Y forward)",
-            },
-            "models": model_versions(),
-            "avatar": ({"input": args.avatar, "description": avatar_description,
-                        "shape_keys": avatar.names} if avatar else None),
-            "still_images": args.still_images,
-            "calibration_frames": args.calibration_frames,
-        }
+    camera = None
+    if any(v is not None for v in given.values()) or not args.still_images:
+        camera = Camera.from_image_size(*source.frame_size, **given)
+    return camera, FaceTrackingSession(avatar=avatar, camera=camera,
+                                       calibration_frames=args.calibration_frames,
+                                       still_images=args.still_images)
+
+
+def _tracked_frame(args, source, session, camera):
+    """(the next frame's record, its width and height), or None at the end of the input.
+    ExCloneError for a frame that cannot be tracked (unreadable, of another size, refused by
+    the tracker)."""
+    frame = source.read()
+    if frame is None:
+        return None
+    width, height = source.frame_size
+    if not args.still_images and (frame.image.shape[1], frame.image.shape[0]) != (width, height):
+        raise ExCloneError(f"it is {frame.image.shape[1]}x{frame.image.shape[0]} pixels, the "
+                           f"first was {width}x{height}; give --still-images for images of "
+                           "different sizes")
+    step_start = time.perf_counter()
+    result = session.step(frame.image, frame.timestamp)
+    record = frame_record(frame, result)
+    record["stage_ms"]["total"] = round(1000 * (time.perf_counter() - step_start), 3)
+    if camera is None:
+        record["camera"] = _camera_dict(session.camera)
+    return record, (frame.image.shape[1], frame.image.shape[0])
+
+
+@dataclass
+class Take:
+    camera: object        # core.tracking.Camera, or None: each still image's own
+    records: list         # one dict per frame tracked
+    sizes: set            # the frames' (width, height)
+    seconds: float
+    error: str = None     # why the take stopped before the input's end, else None
+
+
+def track(args, source, avatar):
+    """Every frame up to --frames as a Take; a frame that cannot be tracked stops it there (the
+    frames before it are kept) and is named in its error."""
+    camera, session = _session(args, source, avatar)
+    limit = args.frames or (DEFAULT_CAMERA_FRAMES if source.is_live else None)
+    take = Take(camera, [], set(), 0.0)
+    start = time.perf_counter()
+    while limit is None or len(take.records) < limit:
+        try:
+            tracked = _tracked_frame(args, source, session, camera)
+        except ExCloneError as exc:
+            take.error = f"frame {len(take.records)}: {exc}"
+            break
+        if tracked is None:
+            break
+        take.records.append(tracked[0])
+        take.sizes.add(tracked[1])
+    take.seconds = time.perf_counter() - start
+    return take
+
+
+def _header(args, source, camera, avatar, avatar_description):
+    given = sorted(axis for axis in ("fx", "fy", "cx", "cy")
+                   if getattr(args, f"camera_{axis}") is not None)
+    width, height = source.frame_size
+    return {
+        "format": FORMAT, "format_version": FORMAT_VERSION,
+        "source": {"input": args.input, "description": source.description,
+                   "is_live": source.is_live, "frame_rate": source.frame_rate,
+                   "frame_size": [width, height]},
+        # still images without given intrinsics: each frame's own, in its record
+        "camera": dict(_camera_dict(camera) if camera else {"per_frame": True}, given=given),
+        "conventions": {
+            "pixels": "OpenCV: the centre of pixel (column i, row j) is (i, j)",
+            "landmarks": "468 MediaPipe FaceMesh points: x, y image pixels, z FaceMesh depth "
+                         "(pixels, smaller towards the camera)",
+            "ibug68": "iBUG 300-W 68-point order (0-based), image pixels",
+            "head_pose": "model (canonical face, cm, +Y up, looking along +Z) -> camera "
+                         "(x right, y down, z forward); quaternion x, y, z, w",
+            "head_rotation_blender": "relative to the calibrated neutral, Blender axes "
+                                     "(+Z up, -Y forward)",
+        },
+        "models": model_versions(),
+        "avatar": ({"input": args.avatar, "description": avatar_description,
+                    "shape_keys": avatar.names} if avatar else None),
+        "still_images": args.still_images,
+        "calibration_frames": args.calibration_frames,
+    }
+
+
+def _summary(take):
+    records = take.records
     found = [r for r in records if r["found"]]
     stages = sorted({k for r in records for k in r["stage_ms"]})
-    header["summary"] = {
-        "frames": len(records), "frames_with_face": len(found), "seconds": round(elapsed, 3),
+    return {
+        "frames": len(records), "frames_with_face": len(found),
+        "seconds": round(take.seconds, 3),
         "median_ms": {k: round(float(np.median([r["stage_ms"].get(k, 0.0) for r in records])), 3)
                       for k in stages} if records else {},
+        # why the take stopped before the input's end (the frames before it are all here)
+        "error": take.error,
     }
-    header["frames"] = records
-    out.parent.mkdir(parents=True, exist_ok=True)
-    temporary = out.with_name(out.name + ".part")
-    temporary.write_text(json.dumps(header, separators=(",", ":")) + "\n")
-    os.replace(temporary, out)
-    print(f"track_video: {len(records)} frames ({len(found)} with a face) from "
+
+
+def run(args):
+    """Track the input and write the JSON; returns it. A frame that cannot be tracked ends the
+    take: the frames before it are written, then ExCloneError says which frame and why."""
+    out = output_path(args)
+    avatar, avatar_description = load_avatar(args.avatar) if args.avatar else (None, None)
+    with capture.open_source(args.input, frame_rate=args.fps) as source:
+        take = track(args, source, avatar)
+        header = _header(args, source, take.camera, avatar, avatar_description)
+    if take.error is not None and not take.records:
+        raise ExCloneError(take.error)
+    header["source"]["frame_sizes_vary"] = len(take.sizes) > 1
+    header["summary"] = _summary(take)
+    header["frames"] = take.records
+    with Outputs() as outputs:
+        text = json.dumps(header, separators=(",", ":"), allow_nan=False) + "\n"
+        outputs.write(out, lambda path: path.write_text(text, encoding="utf-8"))
+        outputs.commit()
+    found = header["summary"]["frames_with_face"]
+    if take.error is not None:
+        raise ExCloneError(f"{take.error}; the {len(take.records)} frames before it are in {out}")
+    print(f"track_video: {len(take.records)} frames ({found} with a face) from "
           f"{header['source']['description']} -> {out}")
     return header
 

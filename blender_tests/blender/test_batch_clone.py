@@ -1,11 +1,14 @@
 """scripts/batch_clone.py: bad input fails with one clear line and touches nothing; a full run
-writes the .blend, the report, the OBJs and the contact sheet.
+writes the .blend, the report, the OBJs and the contact sheet; an output that cannot be written
+is refused before the work or, if it fails later (a full disk), leaves nothing half-written.
 
 The CLI runs as a subprocess of this Python (the bpy module), exactly as a user runs it.
 """
 import hashlib
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -17,11 +20,12 @@ import pytest
 
 from blender_tests.helpers.paths import REPO_ROOT
 from exclone_addon.core import data
-from exclone_addon import batch
-from exclone_addon.blender import mesh_io
+from exclone_addon.blender import files, mesh_io
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj, write_obj
+from scripts import batch_clone
+from scripts.exclone_cli import Outputs
 
 SCRIPT = REPO_ROOT / "scripts" / "batch_clone.py"
 DATA = REPO_ROOT / "exclone_addon" / "data"
@@ -126,9 +130,30 @@ BAD_INPUTS = {
                                     "--out", "{in}/r.blend"], "--out names one file"),
     "--jobs with one target": (["--jobs", "2"], "--jobs is for several targets"),
     "--jobs 0": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend", "--jobs", "0"],
-                 "--jobs must be at least 1"),
+                 "argument --jobs: must be at least 1"),
+    "--jobs inf": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend", "--jobs", "inf"],
+                   "argument --jobs: must be a whole number, got 'inf'"),
     "target folder without meshes": (["--target", "{in}/no_meshes"], "holds no .blend, .obj"),
+    # output locations are checked before any work
+    "--out under a file": (["--out", "{in}/head.obj/r.blend"],
+                           "cannot write {in}/head.obj/r.blend: {in}/head.obj is a file, not a folder"),
+    "--report under a file": (["--report", "{in}/head.obj/r.json"],
+                              "cannot write {in}/head.obj/r.json: {in}/head.obj is a file"),
+    "--preview under a file": (["--preview", "{in}/head.obj/deeper/r.png"],
+                               "cannot write {in}/head.obj/deeper/r.png: {in}/head.obj is a file"),
+    "--export-dir under a file": (["--export-dir", "{in}/head.obj/objs"],
+                                  "cannot write {in}/head.obj/objs: {in}/head.obj is a file"),
+    "--export-dir is a file": (["--export-dir", "{in}/head.obj"],
+                               "cannot write {in}/head.obj: {in}/head.obj is a file"),
+    "--out-dir under a file": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend",
+                                "--out-dir", "{in}/text.blend/results"],
+                               "cannot write {in}/text.blend/results: {in}/text.blend is a file"),
+    "batch --export-dir under a file": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend",
+                                         "--export-dir", "{in}/head.obj/objs"],
+                                        "cannot write {in}/head.obj/objs: {in}/head.obj is a file"),
 }
+# what the engine prints while cloning, e.g. "   40% registration"
+PROGRESS = re.compile(r"^\s*\d+% ", re.MULTILINE)
 
 
 @pytest.mark.parametrize("case", sorted(BAD_INPUTS))
@@ -139,20 +164,26 @@ def test_bad_input_fails_with_one_line_and_changes_nothing(case, inputs, tmp_pat
     assert result.returncode != 0
     lines = result.stderr.splitlines()
     assert len(lines) == 1, result.stderr
+    expected = expected.replace("{in}", str(inputs))
     assert lines[0].startswith("batch_clone: error: ") and expected in lines[0], lines[0]
+    assert not PROGRESS.search(result.stdout), "refused only after cloning"
     assert hashes(inputs, DATA) == before
     assert not (tmp_path / "out").exists()
 
 
+# The checks are core.landmarks.checked_pairs' (the one check of landmark ids); the CLI names the file.
 BAD_LANDMARKS = {
-    "not JSON": ("{source: [1, 2", "not valid JSON"),
-    "missing key": ({"source": [1, 2, 3, 4]}, 'must be {"source": [ids], "target": [ids]}'),
-    "different lengths": ({"source": [1, 2, 3, 4], "target": [1, 2, 3]}, "must pair up"),
+    "not JSON": ("{source: [1, 2", "is not valid JSON"),
+    "missing key": ({"source": [1, 2, 3, 4]}, 'must be {"source": [vertex ids], "target": [vertex ids]}'),
+    "not a dict": ([1, 2, 3, 4], 'must be {"source": [vertex ids], "target": [vertex ids]}'),
+    "different lengths": ({"source": [1, 2, 3, 4], "target": [1, 2, 3]},
+                          "4 source ids but 3 target ids"),
     "too few": ({"source": [1, 2, 3], "target": [1, 2, 3]}, "at least 4 are needed"),
     "out of range": ({"source": [1, 2, 3, 4], "target": [1, 2, 3, 4244]},
-                     "target vertex id 4244 is out of range"),
-    "not ids": ({"source": [1, 2, 3, 4.5], "target": [1, 2, 3, 4]}, "must be a list of vertex ids"),
-    "repeated": ({"source": [1, 2, 3, 3], "target": [1, 2, 3, 4]}, "repeat a vertex"),
+                     "a target vertex id is outside 0..4243"),
+    "not ids": ({"source": [1, 2, 3, 4.5], "target": [1, 2, 3, 4]}, "with whole-number ids"),
+    "repeated": ({"source": [1, 2, 3, 3], "target": [1, 2, 3, 4]},
+                 "a source vertex id is used twice"),
 }
 
 
@@ -166,15 +197,22 @@ def test_bad_landmarks_fail_with_one_line(case, tmp_path):
     assert result.returncode != 0
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith("batch_clone: error: "), result.stderr
-    assert expected in lines[0], lines[0]
+    assert expected in lines[0] and f"landmarks file {path}" in lines[0], lines[0]
     assert hashes(path) == before
 
 
 # -- input readers and the OBJ export, without the engine ---------------------------------------
 
+def export_shapes(directory, neutral, names, deltas):
+    with Outputs() as outputs:
+        paths = batch_clone.export_shapes(outputs, directory, neutral, names, deltas)
+        outputs.commit()
+    return paths
+
+
 def test_export_of_an_unmodified_obj_target_reproduces_it(tmp_path, head):
-    target = batch.load_target(str(DEMO_HEAD))
-    paths = batch.export_shapes(tmp_path, target.mesh, [], np.zeros((0, len(head.vertices), 3)))
+    target = files.load_target(str(DEMO_HEAD))
+    paths = export_shapes(tmp_path, target.mesh, [], np.zeros((0, len(head.vertices), 3)))
     exported = read_obj(paths["neutral"])
     assert np.abs(exported.vertices - head.vertices).max() <= 1e-5
     assert np.array_equal(exported.loop_totals, head.loop_totals)
@@ -187,9 +225,9 @@ def test_export_of_a_blend_target_reproduces_its_vertices_and_adds_deltas(tmp_pa
     lift = np.zeros_like(head.vertices)
     lift[:, 1] = 0.25
     save_blend(tmp_path / "target.blend", [("other", head, {}), ("head", head, {})])
-    target = batch.load_target(f"{tmp_path / 'target.blend'}:head")
+    target = files.load_target(f"{tmp_path / 'target.blend'}:head")
     assert [obj.name for obj in bpy.context.scene.objects] == ["head"]
-    paths = batch.export_shapes(tmp_path / "export", target.mesh, ["jaw/Open"], lift[None])
+    paths = export_shapes(tmp_path / "export", target.mesh, ["jaw/Open"], lift[None])
     assert sorted(p.name for p in paths.values()) == ["jaw_Open.obj", "neutral.obj"]
     neutral, shape = read_obj(paths["neutral"]), read_obj(paths["jaw/Open"])
     assert np.abs(neutral.vertices - head.vertices).max() <= 1e-5
@@ -201,8 +239,9 @@ def test_blend_source_gives_its_shape_keys(tmp_path, head):
     lift = np.zeros_like(head.vertices)
     lift[:, 1] = 0.01
     save_blend(tmp_path / "source.blend", [("a_plain", head, {}), ("keyed", head, {"lift": lift})])
-    source, description, inputs = batch.load_source(str(tmp_path / "source.blend"))
-    assert description.endswith(":keyed") and inputs == [tmp_path / "source.blend"]
+    source = files.load_source(str(tmp_path / "source.blend"))
+    assert source.description.endswith(":keyed")
+    assert batch_clone.source_inputs(str(tmp_path / "source.blend")) == [tmp_path / "source.blend"]
     assert source.names == ["lift"]
     assert np.abs(source.deltas[0] - lift).max() <= 1e-6
 
@@ -219,8 +258,8 @@ def test_fbx_and_glb_sources_give_their_shape_keys(suffix, tmp_path, head):
     else:
         bpy.ops.export_scene.gltf(filepath=str(path), export_morph=True)
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    source, description, _ = batch.load_source(str(path))
-    assert description == f"{path}:keyed"
+    source = files.load_source(str(path))
+    assert source.description == f"{path}:keyed"
     assert source.names == ["lift", "sink"]
     # Both formats are Y-up: exporter and importer convert the axes both ways (glTF may also
     # split vertices, so compare every vertex with the one displacement).
@@ -229,9 +268,9 @@ def test_fbx_and_glb_sources_give_their_shape_keys(suffix, tmp_path, head):
 
 def test_shapes_and_landmarks_are_checked_before_cloning(tmp_path):
     path = landmarks_file(tmp_path, [0, 1, 2, 3], [10, 11, 12, 13])
-    assert batch.read_landmarks(path, 100, 20)["target"].tolist() == [10, 11, 12, 13]
-    with pytest.raises(ExCloneError, match="out of range"):
-        batch.read_landmarks(path, 100, 12)
+    assert batch_clone.read_landmarks(path, 100, 20)["target"].tolist() == [10, 11, 12, 13]
+    with pytest.raises(ExCloneError, match=r"landmarks file .* a target vertex id is outside 0\.\.11"):
+        batch_clone.read_landmarks(path, 100, 12)
 
 
 # -- full runs: need the cloning engine ----------------------------------------------------------
@@ -322,7 +361,7 @@ def test_run_with_the_reports_landmarks_shapes_and_export(default_run, tmp_path,
 # -- batches of several targets ------------------------------------------------------------------
 
 def test_output_names_are_unique_per_target():
-    assert batch.output_stems(["a/head.obj", "b/head.obj", "c/head.blend:Face", "head.fbx"]) == [
+    assert batch_clone.output_stems(["a/head.obj", "b/head.obj", "c/head.blend:Face", "head.fbx"]) == [
         "head", "head-2", "head_Face", "head-3"]
 
 
@@ -361,3 +400,97 @@ def test_batch_writes_one_output_per_target_and_skips_a_bad_one(tmp_path, head):
         assert np.linalg.norm(deltas[0], axis=1).max() > 0.01 * np.ptp(head.vertices, axis=0).max()
     print(f"batch of 3 targets, 2 jobs: {summary['seconds']} s; per target: "
           + ", ".join(f"{Path(e['target']).name} {e['seconds']} s" for e in summary["targets"]))
+
+
+# -- outputs that cannot be written: refused at once, or (a full disk) nothing left half-written --
+
+MOUNT_SCRIPT = """
+mount -t tmpfs -o "$1" exclone-test "$2" || exit 97
+disk=$2; shift 2
+"$@"; status=$?
+echo "MOUNT CONTENTS:"; ls -A "$disk"
+exit $status
+"""
+
+
+def run_cli_on_disk(disk, options, *args, cwd):
+    """The CLI with the empty folder `disk` made a tmpfs with these mount options ("ro": a
+    read-only disk, "size=64k": a nearly full one) in a private user and mount namespace: real
+    write failures, for root as for anyone, and nothing outside the test changes. Returns
+    (result, the files on that disk when the CLI ended)."""
+    if shutil.which("unshare") is None:
+        pytest.skip("needs unshare (util-linux) for a private tmpfs")
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
+    result = subprocess.run(["unshare", "--user", "--map-root-user", "--mount", "sh", "-c",
+                             MOUNT_SCRIPT, "sh", options, str(disk), sys.executable, str(SCRIPT),
+                             *map(str, args)],
+                            cwd=cwd, env=env, capture_output=True, text=True, timeout=900)
+    if result.returncode == 97 or result.stderr.startswith("unshare:"):
+        pytest.skip(f"cannot mount a private tmpfs here: {result.stderr.strip()}")
+    stdout, _, contents = result.stdout.partition("MOUNT CONTENTS:\n")
+    return subprocess.CompletedProcess(result.args, result.returncode, stdout, result.stderr), \
+        contents.split()
+
+
+def one_error_line(result):
+    assert result.returncode == 1
+    lines = result.stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("batch_clone: error: "), result.stderr
+    return lines[0].removeprefix("batch_clone: error: ")
+
+
+READ_ONLY_OUTPUTS = {
+    # case: (arguments, with {ro} the read-only folder; the path the message names)
+    "--out": (["--out", "{ro}/r.blend"], "{ro}/r.blend"),
+    "--report": (["--report", "{ro}/r.json"], "{ro}/r.json"),
+    "--preview": (["--preview", "{ro}/sheets/r.png"], "{ro}/sheets/r.png"),
+    "--export-dir": (["--export-dir", "{ro}/objs"], "{ro}/objs"),
+    "--out-dir": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend", "--out-dir", "{ro}"],
+                  "{ro}"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(READ_ONLY_OUTPUTS))
+def test_output_on_a_read_only_disk_is_refused_before_any_work(case, inputs, tmp_path):
+    arguments, named = READ_ONLY_OUTPUTS[case]
+    read_only = tmp_path / "ro"
+    read_only.mkdir()
+    fill = {"{ro}": str(read_only), "{in}": str(inputs)}
+    result, contents = run_cli_on_disk(
+        read_only, "ro", *[re.sub(r"\{ro\}|\{in\}", lambda m: fill[m[0]], a) for a in arguments],
+        cwd=tmp_path)
+    message = one_error_line(result)
+    assert message == (f"cannot write {named.replace('{ro}', str(read_only))}: the folder "
+                       f"{read_only} is not writable"), message
+    assert not PROGRESS.search(result.stdout), "refused only after cloning"
+    assert contents == [] and sorted(p.name for p in tmp_path.iterdir()) == ["in", "ro"]
+
+
+def test_a_blend_the_disk_cannot_hold_is_reported_and_nothing_is_left(tmp_path):
+    """The .blend's folder is writable when checked but too small for the file: the failed save
+    is noticed (Blender 5.0 reports this one as saved, leaving a truncated file, so the CLI reads
+    each saved file back), no report or preview is written, nothing is left on the disk."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    result, contents = run_cli_on_disk(disk, "size=64k", "--shapes", "jawOpen",
+                                       "--out", disk / "r.blend", "--report", tmp_path / "r.json",
+                                       "--preview", tmp_path / "r.png", cwd=tmp_path)
+    message = one_error_line(result)
+    assert message.startswith(f"cannot write {disk}/r.blend: ") and "disk full" in message, message
+    assert PROGRESS.search(result.stdout), "the clone should have run (the check passed)"
+    assert contents == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["disk"]
+
+
+def test_a_failed_export_leaves_no_finished_blend_without_it(tmp_path):
+    """--export-dir on a disk too small for the OBJs: the .blend, report and preview that were
+    already written (under temporary names) are removed too; one line says what failed."""
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    result, contents = run_cli_on_disk(disk, "size=64k", "--shapes", "jawOpen",
+                                       "--out", tmp_path / "r.blend",
+                                       "--export-dir", disk / "objs", cwd=tmp_path)
+    message = one_error_line(result)
+    assert message == f"cannot write {disk}/objs/neutral.obj: No space left on device", message
+    assert contents == []       # not even the objs folder the run made
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["disk"]

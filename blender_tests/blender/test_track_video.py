@@ -1,4 +1,5 @@
-"""scripts/track_video.py: the offline tracker's command line and JSON contract (issue 5)."""
+"""scripts/track_video.py: the offline tracker's command line and JSON contract; bad input and
+a bad frame end with one line (the frames tracked before a bad frame are kept)."""
 import functools
 import importlib.util
 import json
@@ -126,8 +127,18 @@ def test_avatar_weights_by_shape_key_name(tmp_path):
     (["{tmp}"], "folder {tmp} holds no images"),
     (["{tmp}/junk.mp4", "--out", "{tmp}/x.txt"], "--out must name a .json file"),
     (["{tmp}/junk.mp4", "--out", "{tmp}/junk.mp4"], "--out must name a .json file"),   # the input
-    (["{tmp}/junk.mp4", "--frames", "0"], "--frames must be at least 1"),
-    (["{tmp}/junk.mp4", "--camera-fx", "-5"], "--camera-fx must be positive"),
+    (["{tmp}/junk.mp4", "--frames", "0"], "argument --frames: must be at least 1"),
+    (["{tmp}/junk.mp4", "--frames", "2.5"], "argument --frames: must be a whole number, got '2.5'"),
+    (["{tmp}/junk.mp4", "--camera-fx", "-5"], "argument --camera-fx: must be positive"),
+    (["{tmp}/junk.mp4", "--camera-fx", "nan"], "argument --camera-fx: must be a finite number"),
+    (["{tmp}/junk.mp4", "--camera-cx", "inf"], "argument --camera-cx: must be a finite number"),
+    (["{tmp}/junk.mp4", "--fps", "inf"], "argument --fps: must be a finite number, got 'inf'"),
+    (["{tmp}/junk.mp4", "--fps", "nan"], "argument --fps: must be a finite number, got 'nan'"),
+    (["{tmp}/junk.mp4", "--fps", "0"], "argument --fps: must be positive, got 0"),
+    (["{tmp}/junk.mp4", "--calibration-frames", "-inf"],
+     "argument --calibration-frames: must be a whole number"),
+    (["{tmp}/junk.mp4", "--out", "{tmp}/junk.mp4/take.json"],
+     "cannot write {tmp}/junk.mp4/take.json: {tmp}/junk.mp4 is a file, not a folder"),
     (["{tmp}/junk.mp4", "--bogus"], "unrecognized arguments: --bogus"),
     (["{tmp}/junk.mp4", "--avatar", "{tmp}/none.blend"], "--avatar not found"),
 ])
@@ -151,3 +162,55 @@ def test_cli_process_exit_codes(tmp_path):
     code, out, err = run_cli(frames, "--out", tmp_path / "two.json")
     assert code == 0 and err == "" and "2 frames (2 with a face)" in out
     assert len(json.loads((tmp_path / "two.json").read_text())["frames"]) == 2
+
+
+def strict_json(path):
+    """The file's JSON; fails on NaN or Infinity (not JSON, though Python writes and reads them)."""
+    def refuse(constant):
+        raise AssertionError(f"{path} holds {constant}")
+    return json.loads(path.read_text(), parse_constant=refuse)
+
+
+@pytest.mark.parametrize("bad", ["unreadable", "1x1", "smaller"])
+def test_a_bad_later_frame_ends_the_take_and_keeps_the_frames_before_it(tmp_path, capfd, bad):
+    frames = write_frames(tmp_path / "frames", 6)
+    if bad == "unreadable":
+        (frames / "frame_004.png").write_bytes(b"not a png" * 10)
+        expected = "frame 4: image "
+    else:
+        size = (1, 1) if bad == "1x1" else (320, 240)
+        cv2.imwrite(str(frames / "frame_004.png"), cv2.resize(astronaut_frame(4), size))
+        expected = f"frame 4: it is {size[0]}x{size[1]} pixels, the first was 640x480"
+    out = tmp_path / "take.json"
+    assert track_video().main([str(frames), "--out", str(out), "--calibration-frames", "2"]) == 1
+    lines = capfd.readouterr().err.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"track_video: error: {expected}"), lines
+    assert lines[0].endswith(f"; the 4 frames before it are in {out}"), lines[0]
+    result = strict_json(out)
+    assert [r["index"] for r in result["frames"]] == [0, 1, 2, 3]
+    assert all(r["found"] for r in result["frames"])
+    assert result["summary"]["frames"] == 4 and result["summary"]["error"].startswith(expected)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["frames", "take.json"]   # no temporary
+
+
+def test_a_one_pixel_still_image_ends_cleanly(tmp_path, capfd):
+    """Among photographs, a 1x1 image: either the take stops there (one line, the photograph
+    before it kept) or it is a frame without a face with its status; never a traceback."""
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    cv2.imwrite(str(photos / "a.png"), astronaut())
+    cv2.imwrite(str(photos / "b.png"), np.zeros((1, 1, 3), np.uint8))
+    cv2.imwrite(str(photos / "c.png"), astronaut_frame(0))
+    out = tmp_path / "photos.json"
+    code = track_video().main([str(photos), "--still-images", "--out", str(out)])
+    err = capfd.readouterr().err
+    result = strict_json(out)
+    if code == 1:
+        lines = err.splitlines()
+        assert len(lines) == 1 and lines[0].startswith("track_video: error: frame 1: "), err
+        assert [r["index"] for r in result["frames"]] == [0] and result["frames"][0]["found"]
+        assert result["summary"]["error"].startswith("frame 1: ")
+    else:
+        assert code == 0 and err == ""
+        assert [r["found"] for r in result["frames"]] == [True, False, True]
+        assert result["frames"][1]["status"] and result["summary"]["error"] is None

@@ -1,0 +1,195 @@
+"""Meshes from files, for the command lines: a .blend[:Object] (appended from, never linked), an
+.fbx, .glb or .gltf (imported into the current scene), an .obj (read by core.mesh.read_obj: the
+file's coordinates and vertex order are kept) or a folder with neutral.obj + one OBJ per
+expression (core.library.load_obj_folder). Input files are only read.
+"""
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import bpy
+
+from ..core import data, library
+from ..core.errors import ExCloneError
+from ..core.mesh import MeshError, PolyMesh, check_mesh, read_obj
+from . import mesh_io
+
+IMPORTERS = {".fbx": "fbx", ".glb": "gltf", ".gltf": "gltf"}
+CONTAINERS = (".blend",) + tuple(IMPORTERS)
+TARGET_SUFFIXES = (".obj",) + CONTAINERS
+
+
+@dataclass
+class Target:
+    description: str
+    mesh: PolyMesh
+    obj: object                     # the bpy object, in the current scene, that gets the keys
+
+
+def split_spec(spec):
+    """'file.blend:Object' -> (Path('file.blend'), 'Object'); anything else -> (Path, None)."""
+    head, sep, name = spec.rpartition(":")
+    if sep and Path(head).suffix.lower() in CONTAINERS and name and not Path(spec).exists():
+        return Path(head), name
+    return Path(spec), None
+
+
+def _has_shape_keys(obj):
+    return obj.data.shape_keys is not None and len(obj.data.shape_keys.key_blocks) > 1
+
+
+def _objects_from_file(path):
+    """Every object of a .blend (appended, not linked to a scene) or of an imported FBX/glTF."""
+    if path.suffix.lower() == ".blend":
+        try:
+            with bpy.data.libraries.load(str(path), link=False) as (data_from, data_to):
+                data_to.objects = list(data_from.objects)
+        except OSError as exc:
+            raise ExCloneError(f"{path} is not a readable .blend file") from exc
+        return [obj for obj in data_to.objects if obj is not None]
+    before = set(bpy.data.objects)
+    importer = getattr(bpy.ops.import_scene, IMPORTERS[path.suffix.lower()])
+    try:
+        importer(filepath=str(path))
+    except RuntimeError as exc:
+        raise ExCloneError(f"cannot import {path}: {_first_line(exc, 'import failed')}") from exc
+    return [obj for obj in bpy.data.objects if obj not in before]
+
+
+def _first_line(error, default):
+    text = str(error).strip()
+    return text.splitlines()[0].removeprefix("Error: ") if text else default
+
+
+def _named_object(objects, path, name, role, need_shape_keys):
+    chosen = next((obj for obj in objects if obj.name == name), None)
+    if chosen is None:
+        available = ", ".join(obj.name for obj in objects[:10]) or "none"
+        raise ExCloneError(f"{role} {path} has no object named '{name}' (objects: {available})")
+    if chosen.type != 'MESH':
+        raise ExCloneError(f"{role} {path}:{name} is not a mesh object")
+    if need_shape_keys and not _has_shape_keys(chosen):
+        raise ExCloneError(f"{role} {path}:{name} has no shape keys")
+    return chosen
+
+
+def pick_object(path, name, role, need_shape_keys):
+    """The object `name` of the file, else its first mesh object by name (with shape keys if
+    need_shape_keys). role ("source", "target", ...) starts every error message."""
+    objects = sorted(_objects_from_file(path), key=lambda obj: obj.name)
+    if name is not None:
+        return _named_object(objects, path, name, role, need_shape_keys)
+    meshes = [obj for obj in objects if obj.type == 'MESH']
+    if not meshes:
+        raise ExCloneError(f"{role} {path} contains no mesh object")
+    if need_shape_keys:
+        meshes = [obj for obj in meshes if _has_shape_keys(obj)]
+        if not meshes:
+            raise ExCloneError(f"{role} {path} has no mesh object with shape keys")
+    return meshes[0]
+
+
+def _existing(path, role):
+    if not path.exists():
+        raise ExCloneError(f"{role} not found: {path}")
+    return path
+
+
+def _checked(mesh, what):
+    """The mesh if the engine can use it (core.mesh.check_mesh); errors start with `what`."""
+    try:
+        triangles = mesh.triangles()
+    except MeshError as exc:    # triangulation errors do not say which mesh
+        raise MeshError(f"{what}: {exc}") from exc
+    check_mesh(mesh.vertices, triangles, what=what)
+    return mesh
+
+
+def _library_from_file(path, name, role):
+    obj = pick_object(path, name, role, need_shape_keys=True)
+    names, deltas = mesh_io.shape_keys_from_object(obj, what=role)
+    return library.ExpressionLibrary(mesh_io.mesh_from_object(obj, what=role), names, deltas,
+                                     description=f"{path}:{obj.name}")
+
+
+def load_source(spec, role="source"):
+    """The expressions of a source spec as a core.library.ExpressionLibrary whose description
+    names the file (and object): None = the bundled library, a folder of OBJs, or a
+    .blend[:Object], .fbx, .glb or .gltf mesh with shape keys."""
+    if spec is None:
+        source = library.load_library()
+    else:
+        path, name = split_spec(spec)
+        suffix = _existing(path, role).suffix.lower()
+        if path.is_dir():
+            source = library.load_obj_folder(path)
+        elif suffix == ".obj":
+            raise ExCloneError(f"{role} {path} is an OBJ file, which cannot hold shape keys: give a "
+                               "folder with neutral.obj + one OBJ per expression, or a .blend, "
+                               ".fbx or .glb mesh with shape keys")
+        elif suffix in CONTAINERS:
+            source = _library_from_file(path, name, role)
+        else:
+            raise ExCloneError(f"{role} {path}: unsupported file type '{path.suffix}' "
+                               "(use .blend, .fbx, .glb or a folder of OBJs)")
+    _checked(source.mesh, f"{role} {source.description}")
+    if not source.names:
+        raise ExCloneError(f"{role} {source.description} has no expressions")
+    return source
+
+
+def _keep_only(obj):
+    """Remove every object but obj and its parents, and link obj to the scene: the file saved
+    afterwards holds the target alone (and what it uses)."""
+    keep, ancestor = {obj}, obj.parent
+    while ancestor is not None:
+        keep.add(ancestor)
+        ancestor = ancestor.parent
+    bpy.data.batch_remove([other for other in bpy.data.objects if other not in keep])
+    if obj.name not in bpy.context.scene.collection.all_objects:
+        bpy.context.scene.collection.objects.link(obj)
+
+
+def load_target(spec):
+    """The target spec (None = the bundled demo head) as a Target whose object sits in the
+    current scene, alone. An OBJ becomes a new object whose mesh keeps the file's coordinates,
+    rotated +90 degrees about X (OBJ is Y-up, Blender Z-up)."""
+    path, name = (data.DEMO_HEAD_FILE, None) if spec is None else split_spec(spec)
+    suffix = _existing(path, "target").suffix.lower()
+    if path.is_dir():
+        raise ExCloneError(f"target {path} is a folder; give a .blend, .obj, .fbx or .glb file")
+    if suffix == ".obj":
+        mesh = _checked(read_obj(path), f"target {path}")
+        obj = mesh_io.object_from_mesh(path.stem, mesh)
+        obj.rotation_euler = (math.pi / 2, 0.0, 0.0)
+        return Target(str(path), mesh, obj)
+    if suffix not in CONTAINERS:
+        raise ExCloneError(f"target {path}: unsupported file type '{path.suffix}' "
+                           "(use .blend, .obj, .fbx or .glb)")
+    obj = pick_object(path, name, "target", need_shape_keys=False)
+    description = f"{path}:{obj.name}"
+    mesh = _checked(mesh_io.mesh_from_object(obj, what="target"), f"target {description}")
+    _keep_only(obj)
+    return Target(description, mesh, obj)
+
+
+def save_copy(path, holds):
+    """Save the current file's data as a copy at `path` (the session keeps its own file path),
+    then read it back: a full disk can leave a truncated file that Blender reports as saved.
+    holds: the name of an object the saved file must list. OSError with the reason if the file
+    was not saved whole (a full disk, a read-only folder)."""
+    path = Path(path).resolve()
+    try:
+        result = bpy.ops.wm.save_as_mainfile(filepath=str(path), copy=True, check_existing=False)
+    except RuntimeError as exc:
+        raise OSError(_first_line(exc, "Blender could not save it")) from exc
+    if result != {'FINISHED'} or not path.is_file():
+        raise OSError("Blender did not save it")
+    try:
+        with bpy.data.libraries.load(str(path)) as (saved, _):
+            names = list(saved.objects)
+    except OSError as exc:
+        raise OSError("the saved file cannot be read back (truncated?); is the disk full?") \
+            from exc
+    if holds not in names:
+        raise OSError(f"the saved file lacks the object '{holds}'; is the disk full?")
