@@ -140,8 +140,7 @@ def face_frame(vertices, triangles, search=None):
 
     search: the surface's proximity.TriangleSurface if already built (a surface.Surface's).
     """
-    used = np.unique(triangles)
-    size = diagonal(vertices, used)
+    size = diagonal(vertices, np.unique(triangles))
     samples, normals = surface_samples(vertices, triangles)
     search = search if search is not None else TriangleSurface(vertices, triangles)
     normal, offset, sym_error = symmetry_plane(samples, size, search)
@@ -149,11 +148,21 @@ def face_frame(vertices, triangles, search=None):
         raise ExCloneError(
             f"could not find the face's left-right symmetry (mirror mismatch {100 * sym_error:.1f}% "
             f"of its size); {_MANUAL}")
+    forward = _forward(samples, normals, vertices[boundary_vertices(triangles)], normal, offset,
+                       size)
+    up = _up(forward, normal)
+    left = np.cross(up, forward)
+    rotation = np.stack([left, up, forward], axis=1)
+    origin = samples.mean(axis=0)
+    origin = origin - (origin @ normal - offset) * normal  # on the symmetry plane
+    return FaceFrame(rotation, origin, size, float(sym_error))
 
-    # Forward: the most protruding extreme direction within the symmetry plane. Tips next to an
-    # open border (a mask's edge, a neck cut) do not count: they stick out of nothing.
+
+def _forward(samples, normals, border, normal, offset, size):
+    """The nose's direction: the most protruding extreme direction within the symmetry plane
+    (normal . x = offset). Tips next to an open border (points `border`: a mask's edge, a neck
+    cut) do not count: they stick out of nothing."""
     candidates = np.abs(samples @ normal - offset) < 0.03 * size
-    border = vertices[boundary_vertices(triangles)]
     if len(border):
         candidates &= cKDTree(border).query(samples)[0] > 0.05 * size
     candidates = np.flatnonzero(candidates)
@@ -176,9 +185,13 @@ def face_frame(vertices, triangles, search=None):
     mean_normal -= (mean_normal @ normal) * normal
     if np.linalg.norm(mean_normal) > 0:
         forward = mean_normal / np.linalg.norm(mean_normal)
+    return forward
 
-    # Up: perpendicular to forward within the plane, signed like the supported conventions'
-    # up (+Y for a Y-up import, +Z in Blender's front view): whichever is further from forward.
+
+def _up(forward, normal):
+    """Up: perpendicular to forward within the symmetry plane, signed like the supported
+    conventions' up (+Y for a Y-up import, +Z in Blender's front view): whichever is further
+    from forward."""
     up = np.cross(forward, normal)
     up /= np.linalg.norm(up)
     world_up = min(np.eye(3)[1:], key=lambda axis: abs(axis @ forward))
@@ -188,11 +201,7 @@ def face_frame(vertices, triangles, search=None):
         raise ExCloneError(
             "the face's up direction is neither +Y nor +Z (within 50 degrees) by its geometry; "
             + _MANUAL)
-    left = np.cross(up, forward)
-    rotation = np.stack([left, up, forward], axis=1)
-    origin = samples.mean(axis=0)
-    origin = origin - (origin @ normal - offset) * normal  # on the symmetry plane
-    return FaceFrame(rotation, origin, size, float(sym_error))
+    return up
 
 
 def vertex_symmetry_plane(vertices, triangles, max_steps=100):
