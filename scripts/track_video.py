@@ -15,7 +15,11 @@ describes the source, frame size, camera intrinsics and model versions.
 on each, no temporal filtering, intrinsics from each image's size unless given.
 --avatar needs Blender's bpy module (.venv/bin/python has it): the avatar's shape keys are read
 from the .blend (or .fbx/.glb, or a folder with neutral.obj + one OBJ per shape), nothing is
-written to it. Exit code 0 on success; otherwise 1 and one line on stderr.
+written to it. Numbers must be finite (--fps, --camera-fx and --camera-fy also positive).
+Exit code 0 on success; otherwise 1 and one line on stderr. A frame that cannot be tracked
+(unreadable, of another size without --still-images, refused by the tracker) ends the take: the
+frames before it are written, the summary's "error" says which frame and why (null after a
+complete take), and the exit code is 1.
 """
 import hashlib
 import json

@@ -71,6 +71,15 @@ def test_zip_has_face_models_and_no_caches(linux_zip):
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc") or n.startswith("tests/")]
 
 
+def test_zip_holds_no_command_line(linux_zip):
+    """The command lines (scripts/) run outside Blender's add-on: none of their modules ships."""
+    names = zipfile.ZipFile(linux_zip).namelist()
+    stems = {name.rsplit("/", 1)[-1].removesuffix(".py") for name in names if name.endswith(".py")}
+    assert not stems & {"batch", "cli", "batch_clone", "track_video", "exclone_cli"}, sorted(stems)
+    assert not [n for n in names if n.startswith("scripts/")]
+    assert {"blender/files.py", "blender/preview.py", "core/reports.py"} <= set(names)
+
+
 def test_installed_extension_is_enabled_with_its_operators_and_wheels(linux_zip, tmp_path):
     user_resources = tmp_path / "blender_user"
     env = dict(os.environ, BLENDER_USER_RESOURCES=str(user_resources))
