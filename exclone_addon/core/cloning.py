@@ -289,7 +289,8 @@ def _checked_deltas(source_deltas, names, source):
     # A vertex of the face moving further than the whole face measures is no expression: the
     # deltas were made at another scale or in other units than the neutral.
     with np.errstate(over="ignore"):
-        reach = np.linalg.norm(deltas[:, source.used], axis=2).max(axis=1, initial=0.0)
+        squared = np.einsum("eij,eij->ei", deltas, deltas)[:, source.used]
+    reach = np.sqrt(squared.max(axis=1, initial=0.0))
     absurd = reach > source.diagonal
     if absurd.any():
         raise ExCloneError(
