@@ -40,6 +40,26 @@ def test_obj_face_referring_to_missing_vertex_is_an_error(tmp_path):
         read_obj(tmp_path / "bad.obj")
 
 
+@pytest.mark.parametrize("text,message", [
+    ("v \nv 1 0 0\n", "line 1: malformed vertex line"),
+    ("v 0 0\nv 1 0\nv 0 1\n", "line 1: malformed vertex"),     # six numbers, not two vertices
+    ("v 0 0 0\nv 1 zero 0\n", "line 2: malformed vertex"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 two 3\n", "line 4: malformed face"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 99999999999999999999999\n", "does not exist"),
+    ("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 0 1 2\n", "does not exist"),   # OBJ counts from 1
+])
+def test_malformed_obj_lines_are_named(tmp_path, text, message):
+    (tmp_path / "bad.obj").write_text(text)
+    with pytest.raises(MeshError, match=message):
+        read_obj(tmp_path / "bad.obj")
+
+
+def test_obj_negative_indices_and_extra_vertex_values(tmp_path):
+    (tmp_path / "m.obj").write_text("v 0 0 0 1 0 0\nv 1 0 0\nv 0 1 0\nf -3 -2/5 -1//7\n")
+    mesh = read_obj(tmp_path / "m.obj")
+    assert mesh.vertices.shape == (3, 3) and mesh.faces()[0].tolist() == [0, 1, 2]
+
+
 @pytest.mark.parametrize("vertices,triangles,message", [
     (np.zeros((0, 3)), np.zeros((0, 3), dtype=int), "empty"),
     (np.array([[0, 0, 0], [1, 0, 0], [np.nan, 1, 0]]), np.array([[0, 1, 2]]), "NaN"),
@@ -57,3 +77,29 @@ def test_parts_and_open_borders():
     assert len(set(parts[:3])) == 1 and len(set(parts[3:6])) == 1
     assert len(set(parts)) == 3
     assert len(boundary_edges(tris)) == 6
+
+
+def test_surface_answers_once_and_a_moved_copy_keeps_sign_and_connections():
+    """core.surface.Surface: an open pyramid wound inwards, a separate triangle and a vertex on
+    nothing; every answer is computed once, and a moved copy keeps sign, parts and borders."""
+    from exclone_addon.core.mesh import diagonal, triangle_normals
+    from exclone_addon.core.surface import Surface
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 1],
+                         [5, 0, 1], [6, 0, 1], [5, 1, 1], [9, 9, 9]])
+    pyramid = [[0, 4, 1], [1, 4, 2], [2, 4, 3], [3, 4, 0]]
+    surface = Surface(vertices, pyramid + [[5, 6, 7]])
+    assert surface.search is surface.search and surface.vertex_normals is surface.vertex_normals
+    assert surface.diagonal == diagonal(vertices, np.arange(8))       # vertex 8 is on nothing
+    assert np.array_equal(surface.border_ids, [0, 1, 2, 3, 5, 6, 7])
+    tent = surface.parts_holding([4])
+    assert np.array_equal(tent.triangles, pyramid)
+    assert surface.parts_holding([4, 5]) is surface
+    # 4 base edges once, 4 slanted ones (length sqrt(1.5)) twice
+    assert tent.mean_edge_length == pytest.approx((4 + 8 * np.sqrt(1.5)) / 12)
+    # the outward sign turns the inward winding's normals out of the pyramid
+    assert tent.sign == -1.0
+    assert tent.triangle_normals[0] @ [0, -1, 0] > 0.5      # the face over the y = 0 edge
+    np.testing.assert_allclose(tent.triangle_normals, -triangle_normals(vertices, tent.triangles))
+    squashed = tent.moved(vertices * [1, 1, 0.01])          # moving never turns it inside out
+    assert squashed.sign == tent.sign and squashed.border_edges is tent.border_edges
+    assert tent.closest([[0.5, 0.5, 3.0]])[2][0] == pytest.approx(2.0)

@@ -56,30 +56,42 @@ def triangulate(loop_totals, loop_vertices):
 
 
 def read_obj(path):
-    """Vertices and polygons of a Wavefront OBJ (all groups and objects merged, file order kept)."""
+    """Vertices and polygons of a Wavefront OBJ (all groups and objects merged, file order kept).
+    MeshError naming the file and line for anything that is not a vertex or face it can read."""
     vertices, faces = [], []
     try:
         with open(path, "r", encoding="utf-8", errors="replace") as fh:
-            for line in fh:
+            for number, line in enumerate(fh, 1):
                 if line.startswith("v "):
-                    vertices.append(line.split()[1:4])
+                    vertices.append(_obj_numbers(line, float, f"{path}, line {number}"))
                 elif line.startswith("f "):
-                    faces.append([int(tok.split("/")[0]) for tok in line.split()[1:]])
+                    faces.append(_obj_numbers(line, int, f"{path}, line {number}"))
     except OSError as exc:
         raise MeshError(f"cannot read {path}: {exc.strerror}") from exc
-    try:
-        verts = np.array(vertices, dtype=np.float64).reshape(-1, 3)
-    except ValueError as exc:
-        raise MeshError(f"{path}: malformed vertex line") from exc
+    verts = np.array(vertices, dtype=np.float64).reshape(-1, 3)
     n = len(verts)
     fixed = []
     for f in faces:
-        idx = np.array(f, dtype=np.int64)
-        idx = np.where(idx < 0, n + idx, idx - 1)  # OBJ indices are 1-based; negatives count back
-        if idx.size and (idx.min() < 0 or idx.max() >= n):
+        # OBJ indices are 1-based; negatives count back from the end
+        idx = [i + n if i < 0 else i - 1 for i in f]
+        if any(i < 0 or i >= n for i in idx):
             raise MeshError(f"{path}: a face refers to a vertex that does not exist")
-        fixed.append(idx)
+        fixed.append(np.array(idx, dtype=np.int64))
     return PolyMesh.from_faces(verts, fixed)
+
+
+def _obj_numbers(line, kind, where):
+    """A vertex line's three coordinates (kind float) or a face line's vertex indices (int)."""
+    tokens = line.split()[1:]
+    try:
+        if kind is float:
+            if len(tokens) < 3:
+                raise ValueError("a vertex needs three coordinates")
+            return [float(tok) for tok in tokens[:3]]     # more (a colour) is allowed
+        return [int(tok.split("/")[0]) for tok in tokens]
+    except ValueError as exc:
+        what = "vertex" if kind is float else "face"
+        raise MeshError(f"{where}: malformed {what} line {line.strip()[:40]!r}") from exc
 
 
 def write_obj(path, mesh, header=None):

@@ -14,8 +14,8 @@ from . import mesh
 from .proximity import SegmentSet, TriangleSurface
 
 
-# what depends on the triangles alone, not on where the vertices are
-_TOPOLOGY = ("used", "parts", "border_edges", "border_ids", "on_border")
+# what depends on the triangles alone, not on where the vertices are, and every moved copy uses
+_TOPOLOGY = ("used", "border_edges", "border_ids", "on_border")
 
 
 class Surface:
@@ -34,9 +34,10 @@ class Surface:
         outward sign and what depends on the triangles alone (parts, borders) are carried:
         moving a surface neither turns it inside out nor changes its connections."""
         moved = Surface(vertices, self.triangles, self.sign)
-        for name in _TOPOLOGY:
-            if name in self.__dict__:
-                moved.__dict__[name] = self.__dict__[name]
+        for name in _TOPOLOGY:      # found once here, shared by every copy
+            moved.__dict__[name] = getattr(self, name)
+        if "parts" in self.__dict__:
+            moved.__dict__["parts"] = self.parts
         return moved
 
     def parts_holding(self, ids):
