@@ -19,7 +19,7 @@ from blender_tests.helpers.paths import REPO_ROOT
 from blender_tests.helpers.layout import RecordingLayout
 from exclone_addon.core import data
 from exclone_addon.blender import landmarks as stored_landmarks
-from exclone_addon.blender import mesh_io, panel, preferences, workflow
+from exclone_addon.blender import mesh_io, operators, panel, preferences, workflow
 from exclone_addon.core.errors import Cancelled
 from exclone_addon.core.library import ARKIT_BLENDSHAPES, load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj
@@ -115,6 +115,8 @@ def test_register_unregister_register_is_symmetric():
 
 
 def test_every_operator_is_one_undo_step():
+    # every operator of this module changes data (keys, landmarks, markers, the preview, the list)
+    assert {cls.bl_idname.split(".")[1] for cls in operators.CLASSES} == OPERATORS
     for name in OPERATORS:
         options = getattr(bpy.ops.exclone, name).bl_options
         assert {'REGISTER', 'UNDO'} <= options, name
@@ -291,6 +293,56 @@ def test_existing_keys_are_kept_unless_replace_existing(head, capfd):
     assert np.allclose(keys(obj)["jawOpen"], cloned["ex_jawOpen"], atol=1e-6)
 
 
+# Blender keeps 63 bytes of a name. 60 ASCII characters leave 3 of each expression's name (so
+# only expressions whose first 3 letters differ); 60 characters of 64 bytes end in a 2-byte
+# character across the cut, which Blender drops with the whole expression name.
+LONG_PREFIXES = {"ascii": ("p" * 60, ["jawOpen", "mouthSmile_L", "eyeBlink_L"]),
+                 "multi-byte at the cut": ("é" * 3 + "p" * 56 + "é", ["jawOpen"])}
+
+
+def tick(names):
+    settings = bpy.context.scene.exclone
+    settings.source_mode = 'LIBRARY'
+    assert bpy.ops.exclone.refresh_expressions() == {'FINISHED'}
+    for item in settings.expressions:
+        item.selected = item.name in names
+
+
+def test_stored_name_is_the_name_blender_stores(head):
+    obj = add_object("head", head)
+    obj.shape_key_add(name="Basis")
+    names = [prefix + name for prefix, ticked in LONG_PREFIXES.values() for name in ticked]
+    for name in names + ["x" * 61 + "€ab", "x" * 62 + "é", "short"]:
+        assert obj.shape_key_add(name=name, from_mix=False).name == workflow.stored_name(name)
+
+
+@pytest.mark.parametrize("prefix,ticked", LONG_PREFIXES.values(), ids=list(LONG_PREFIXES))
+def test_a_long_prefix_run_twice_adds_no_duplicates(head, capfd, prefix, ticked):
+    obj = add_object("head", head)
+    tick(ticked)
+    options = dict(only_ticked=True, prefix=prefix, preset="fast")
+    assert bpy.ops.exclone.clone_expressions(**options) == {'FINISHED'}
+    first = keys(obj)
+    assert sorted(first) == sorted(workflow.stored_name(prefix + name) for name in ticked)
+    assert bpy.ops.exclone.clone_expressions(**options) == {'CANCELLED'}   # all exist: skipped
+    assert list(keys(obj)) == list(first)
+    assert bpy.ops.exclone.clone_expressions(replace_existing=True, **options) == {'FINISHED'}
+    assert f"0 shape keys added, {len(ticked)} replaced" in reports(capfd)[-1]
+    replaced = keys(obj)
+    assert list(replaced) == list(first)
+    for name, delta in first.items():
+        assert np.allclose(replaced[name], delta, atol=1e-6), name
+
+
+def test_a_prefix_that_cuts_two_names_alike_is_refused(head):
+    obj = add_object("head", head)
+    tick(["jawOpen", "jawLeft"])
+    with pytest.raises(RuntimeError, match="Prefix too long: .*'jaw\\w+' and 'jaw\\w+' would both "
+                                           "be named 'p{60}jaw'; use a shorter prefix"):
+        bpy.ops.exclone.clone_expressions(only_ticked=True, prefix="p" * 60)
+    assert obj.data.shape_keys is None
+
+
 def test_only_ticked_expressions_are_cloned(head):
     obj = add_object("head", head)
     settings = bpy.context.scene.exclone
@@ -340,7 +392,7 @@ def test_edited_landmarks_are_hard_constraints(head, capfd):
     count = len(stored_landmarks.stored(obj))
     assert f"{count} edited landmarks" in message, message
     run = workflow.run_engine(workflow.library_source(), workflow.basis_mesh(obj, "target"),
-                              workflow.landmark_pairs(workflow.library_source(), obj,
+                              workflow.landmark_pairs(workflow.library_source(), None, obj,
                                                       workflow.basis_mesh(obj, "target")),
                               workflow.clone_settings(bpy.context, "DEFAULT", "reduced"))
     assert run.cached
@@ -354,7 +406,8 @@ def test_edited_landmarks_are_hard_constraints(head, capfd):
         bpy.data.objects.remove(markers[name])
     bpy.ops.exclone.snap_landmarks()
     assert reports(capfd)[-1].endswith(f"; {len(markers) - 3} without a marker removed")
-    with pytest.raises(RuntimeError, match="share only 3 landmark names"):
+    with pytest.raises(RuntimeError, match="3 pairs given, at least 4 are needed .*run Auto "
+                                           "Landmarks on both"):
         bpy.ops.exclone.clone_expressions(use_library=True)
     assert obj.data.shape_keys is None
 
@@ -432,6 +485,31 @@ def test_poll_says_why_an_operator_cannot_run(head):
     assert target.data.shape_keys is None and bare.data.shape_keys is None
 
 
+def test_a_stored_landmark_off_the_mesh_is_reported(head):
+    obj = add_object("head", head)
+    bpy.ops.exclone.auto_landmarks()
+    obj[stored_landmarks.IDS]["nose_tip"] = len(head.vertices)    # as typed in Custom Properties
+    for operator in (bpy.ops.exclone.clone_expressions, bpy.ops.exclone.register_faces):
+        with pytest.raises(RuntimeError, match=r"target 'head' vertex id is outside 0\.\.4243: "
+                                               "run Auto Landmarks again"):
+            operator(use_library=True)
+    assert obj.data.shape_keys is None
+    assert not any("exclone_preview" in o for o in bpy.data.objects)
+
+
+def test_an_internal_error_is_one_line_and_changes_nothing(head):
+    """A broken object: its landmarks property is a string, not {name: vertex id} (no operator
+    writes one), so plan() raises an AttributeError; the synchronous path reports it as one
+    line."""
+    obj = add_object("head", head)
+    obj[stored_landmarks.IDS] = "not landmarks"
+    with pytest.raises(RuntimeError) as error:
+        bpy.ops.exclone.clone_expressions(use_library=True)
+    message = str(error.value).strip()
+    assert re.fullmatch(r"Error: internal error \(AttributeError: [^\n]*\)", message), message
+    assert obj.data.shape_keys is None
+
+
 def test_a_source_object_without_shape_keys_is_refused(head):
     target = add_object("head", head)
     other = add_object("other", head, active=False)
@@ -445,11 +523,8 @@ def test_a_source_object_without_shape_keys_is_refused(head):
 # -- the worker thread behind the UI's modal run (progress, Esc) --------------------------------
 
 def job_inputs(obj, names):
-    source = workflow.library_source()
-    rows = [source.names.index(name) for name in names]
-    source = workflow.Source(source.description, source.mesh, names, source.deltas[rows])
-    return source, workflow.basis_mesh(obj, "target"), None, workflow.clone_settings(
-        bpy.context, "fast", "reduced")
+    return (workflow.library_source().subset(names), workflow.basis_mesh(obj, "target"), None,
+            workflow.clone_settings(bpy.context, "fast", "reduced"))
 
 
 def test_a_cancelled_job_stops_and_caches_nothing(head):
@@ -476,6 +551,16 @@ def test_a_job_runs_the_engine_in_a_thread_with_progress(head):
     assert len(seen) >= 2, seen   # polled while it ran: the phases went by (registration > 1 s)
     assert 0.45 < lip_parting(head, job.run.result.deltas[0]) < 0.9
     assert workflow.run_engine(*inputs).cached   # the finished job's result is kept
+
+
+def test_a_register_job_fits_without_transferring(head):
+    """Register's inputs end in transfer=False; its job returns the fit alone."""
+    inputs = job_inputs(add_object("head", head), ["jawOpen"]) + (False,)
+    job = workflow.EngineJob(*inputs).start()
+    assert job.wait(timeout=300)
+    assert job.error is None, job.error
+    assert job.run.result.registered_source.shape == inputs[0].mesh.vertices.shape
+    assert not hasattr(job.run.result, "deltas")   # a FaceFit, not a CloneResult
 
 
 # -- undo -----------------------------------------------------------------------------------------

@@ -12,8 +12,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ExCloneError
-from ..core.landmarks import automatic_landmarks
-from ..core.mesh import diagonal, valid_triangles
+from ..core.landmarks import automatic_landmarks, checked_ids
+from ..core.mesh import checked_triangles, diagonal
 from ..core.orientation import face_frame, vertex_symmetry_plane
 
 IDS = "exclone_landmarks"
@@ -24,16 +24,10 @@ MARKER_SIZE = 0.012          # x the mesh's bounding-box diagonal
 OFF_SURFACE = 1e-4           # a marker further than this x diagonal from its vertex was moved
 
 
-def surface_triangles(mesh):
-    """The triangles the core works on (degenerate ones left out), for the detector and the frame."""
-    triangles = mesh.triangles()
-    return triangles[valid_triangles(mesh.vertices, triangles)]
-
-
-def detect(mesh):
+def detect(mesh, what="mesh"):
     """Automatic landmarks of a PolyMesh exactly as the cloning pipeline finds them: {name: id}."""
-    triangles = surface_triangles(mesh)
-    names, ids = automatic_landmarks(mesh.vertices, triangles, face_frame(mesh.vertices, triangles))
+    vertices, triangles = checked_triangles(mesh, what)
+    names, ids = automatic_landmarks(vertices, triangles, face_frame(vertices, triangles))
     return dict(zip(names, (int(i) for i in ids)))
 
 
@@ -49,10 +43,6 @@ def is_edited(obj):
 def markers(obj):
     """{landmark name: marker empty} of the object."""
     return {child[MARKER_TAG]: child for child in obj.children if MARKER_TAG in child}
-
-
-def _diagonal(vertices):
-    return diagonal(vertices)
 
 
 def _vertices(obj):
@@ -82,7 +72,7 @@ def clear(obj):
 
 def _make_markers(obj, landmarks):
     vertices = _vertices(obj)
-    size = MARKER_SIZE * _diagonal(vertices)
+    size = MARKER_SIZE * diagonal(vertices)
     existing = markers(obj)
     bpy.data.batch_remove([m for name, m in existing.items() if name not in landmarks])
     collection = obj.users_collection[0] if obj.users_collection else bpy.context.scene.collection
@@ -105,12 +95,18 @@ def checked(obj, role):
     """The stored landmarks, after checking they still fit the mesh and sit on their vertices.
     Raises ExCloneError saying what to do otherwise."""
     landmarks = stored(obj)
-    count = obj.get(VERTEX_COUNT)
-    if count is not None and count != len(obj.data.vertices):
-        raise ExCloneError(f"{role} '{obj.name}' has {len(obj.data.vertices)} vertices but had "
-                           f"{count} when its landmarks were placed: run Auto Landmarks again")
+    count = len(obj.data.vertices)
+    placed_on = obj.get(VERTEX_COUNT)
+    if placed_on is not None and placed_on != count:
+        raise ExCloneError(f"{role} '{obj.name}' has {count} vertices but had {placed_on} when "
+                           "its landmarks were placed: run Auto Landmarks again")
+    try:
+        checked_ids(list(landmarks.values()), count, f"{role} '{obj.name}'")
+    except ExCloneError as exc:
+        raise ExCloneError(f"{exc}: run Auto Landmarks again, or move its marker and Snap "
+                           "Landmarks") from exc
     vertices = _vertices(obj)
-    tolerance = OFF_SURFACE * _diagonal(vertices)
+    tolerance = OFF_SURFACE * diagonal(vertices)
     moved = [name for name, marker in markers(obj).items()
              if name in landmarks and np.linalg.norm(np.array(marker.location)
                                                      - vertices[landmarks[name]]) > tolerance]
@@ -149,7 +145,7 @@ def mirrored(obj, mesh, from_side="left"):
              if name.endswith("_" + from_side) and name[:-len(from_side)] + to_side in landmarks]
     if not pairs:
         return landmarks, []
-    normal, offset = vertex_symmetry_plane(mesh.vertices, surface_triangles(mesh))
+    normal, offset = vertex_symmetry_plane(*checked_triangles(mesh))
     points = mesh.vertices[[landmarks[a] for a, _ in pairs]]
     reflected = points - 2 * (points @ normal - offset)[:, None] * normal
     _, nearest = cKDTree(mesh.vertices).query(reflected)

@@ -2,16 +2,19 @@
 
 The target is the scene's ExClone target or the active object; the source is the built-in
 library, the scene's source object or the selected mesh with shape keys. Every operator checks
-its input before it changes anything, reports one line, and is one undo step.
+its input before it changes anything, and is one undo step. Whatever goes wrong (a user error, a
+cancel, a bug) is reported as one line and the operator returns CANCELLED.
 """
+import functools
 import time
 from dataclasses import dataclass
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from ..core.errors import Cancelled, ExCloneError
+from ..core.errors import Cancelled, ExCloneError, user_message
 from ..core.library import arkit_blendshapes
+from ..core.mesh import PolyMesh
 from ..core.reports import summary
 from . import landmarks as stored_landmarks
 from . import mesh_io, workflow
@@ -19,6 +22,27 @@ from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
 
 PREVIEW_TAG = "exclone_preview"
 PREVIEW_NAME = "ExClone registration preview"
+
+
+def _failed(operator, error, about=None):
+    """Report an exception as the operator's one line; {'CANCELLED'}."""
+    if isinstance(error, Cancelled):
+        operator.report({'WARNING'}, "Cancelled; nothing was changed")
+    else:
+        message = user_message(error)
+        operator.report({'ERROR'}, f"{about}: {message}" if about else message)
+    return {'CANCELLED'}
+
+
+def _reporting(execute):
+    """An operator's execute(self, context) whose every exception is reported as one line."""
+    @functools.wraps(execute)
+    def execute_reporting(self, context):
+        try:
+            return execute(self, context)
+        except Exception as exc:   # a bug too: one line, never a traceback in the user's face
+            return _failed(self, exc)
+    return execute_reporting
 
 
 def _poll_target(cls, context):
@@ -64,7 +88,8 @@ class _Engine:
 
     From the UI (invoke with a window) the engine runs in a worker thread while a modal handler
     shows the progress and Esc cancels; elsewhere (scripts, background Blender) execute() runs it
-    with progress_update only. An ExCloneError or a cancel changes nothing."""
+    with progress_update only. Either way an error or a cancel is reported as one line and
+    changes nothing."""
     bl_options = {'REGISTER', 'UNDO'}
 
     preset: EnumProperty(
@@ -86,12 +111,8 @@ class _Engine:
             run = workflow.run_engine(
                 *plan.inputs, progress=lambda fraction, _: window_manager.progress_update(fraction))
             return plan.finish(run)
-        except ExCloneError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
-        except Cancelled:
-            self.report({'WARNING'}, "Cancelled; nothing was changed")
-            return {'CANCELLED'}
+        except Exception as exc:
+            return _failed(self, exc)
         finally:
             window_manager.progress_end()
 
@@ -100,9 +121,8 @@ class _Engine:
             return self.execute(context)
         try:
             plan = self.plan(context)
-        except ExCloneError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
+        except Exception as exc:
+            return _failed(self, exc)
         if isinstance(plan, set):
             return plan
         self._plan, self._digest = plan, workflow.mesh_digest(plan.target)
@@ -133,14 +153,8 @@ class _Engine:
         return self._finish_job(job)
 
     def _finish_job(self, job):
-        if isinstance(job.error, Cancelled):
-            self.report({'WARNING'}, "Cancelled; nothing was changed")
-            return {'CANCELLED'}
         if job.error is not None:
-            message = str(job.error) if isinstance(job.error, ExCloneError) else \
-                f"internal error ({type(job.error).__name__}: {job.error})"
-            self.report({'ERROR'}, message)
-            return {'CANCELLED'}
+            return _failed(self, job.error)
         try:
             unchanged = workflow.mesh_digest(self._plan.target) == self._digest
         except ReferenceError:            # the target was deleted meanwhile
@@ -151,9 +165,8 @@ class _Engine:
             return {'CANCELLED'}
         try:
             return self._plan.finish(job.run)
-        except ExCloneError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
+        except Exception as exc:
+            return _failed(self, exc)
 
 
 class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
@@ -196,18 +209,19 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
     def plan(self, context):
         started = time.perf_counter()
         target = workflow.checked_target(workflow.target_object(context))
-        source = workflow.resolve_source(context, target, self.use_library)
+        source, source_obj = workflow.resolve_source(context, target, self.use_library)
         wanted = self._wanted(context, source.names)
+        key_names = dict(zip(wanted, workflow.key_names(self.prefix, wanted)))
         existing = target.data.shape_keys.key_blocks.keys() if target.data.shape_keys else []
         skipped = [] if self.replace_existing else \
-            [name for name in wanted if self.prefix + name in existing]
+            [name for name in wanted if key_names[name] in existing]
         wanted = [name for name in wanted if name not in skipped]
         if not wanted:
             self.report({'WARNING'}, f"All {len(skipped)} expressions already exist as shape "
                                      "keys on the target; enable Replace Existing to redo them")
             return {'CANCELLED'}
         target_mesh = workflow.basis_mesh(target, "target")
-        landmarks = workflow.landmark_pairs(source, target, target_mesh)
+        landmarks = workflow.landmark_pairs(source, source_obj, target, target_mesh)
 
         def finish(run):
             result = run.result
@@ -215,7 +229,7 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
             if self.parts == 'STILL':
                 deltas[:, workflow.still_parts_mask(target_mesh, result.target_landmarks)] = 0.0
             added, replaced, also_skipped = mesh_io.write_shape_keys(
-                target, [self.prefix + name for name in wanted], deltas,
+                target, [key_names[name] for name in wanted], deltas,
                 replace_existing=self.replace_existing)
             self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
                                           time.perf_counter() - started, result.quality)
@@ -245,7 +259,7 @@ class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
         target = workflow.checked_target(workflow.target_object(context))
         source = workflow.library_source()
         target_mesh = workflow.basis_mesh(target, "target")
-        landmarks = workflow.landmark_pairs(source, target, target_mesh)
+        landmarks = workflow.landmark_pairs(source, None, target, target_mesh)
 
         def finish(run):
             names, deltas, missing = arkit_blendshapes(run.result.names, run.result.deltas)
@@ -288,15 +302,15 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
     def plan(self, context):
         started = time.perf_counter()
         target = workflow.checked_target(workflow.target_object(context))
-        source = workflow.resolve_source(context, target, self.use_library)
+        source, source_obj = workflow.resolve_source(context, target, self.use_library)
         target_mesh = workflow.basis_mesh(target, "target")
-        landmarks = workflow.landmark_pairs(source, target, target_mesh)
+        landmarks = workflow.landmark_pairs(source, source_obj, target, target_mesh)
 
         def finish(run):
             _remove_previews()
             if self.preview:
-                mesh = type(source.mesh)(run.result.registered_source, source.mesh.loop_totals,
-                                         source.mesh.loop_vertices)
+                mesh = PolyMesh(run.result.registered_source, source.mesh.loop_totals,
+                                source.mesh.loop_vertices)
                 preview = mesh_io.object_from_mesh(PREVIEW_NAME, mesh)
                 preview[PREVIEW_TAG] = True
                 preview.matrix_world = target.matrix_world
@@ -326,6 +340,7 @@ class EXCLONE_OT_remove_preview(bpy.types.Operator):
             return False
         return True
 
+    @_reporting
     def execute(self, context):
         self.report({'INFO'}, f"Removed {_remove_previews()} preview object(s)")
         return {'FINISHED'}
@@ -357,15 +372,15 @@ class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
     def poll(cls, context):
         return _poll_target(cls, context)
 
+    @_reporting
     def execute(self, context):
         started = time.perf_counter()
-        found = {}
-        try:
-            for obj in _landmark_objects(context):
+        found = {}   # every object's landmarks first: an error leaves all of them as they were
+        for obj in _landmark_objects(context):
+            try:
                 found[obj] = stored_landmarks.detect(workflow.basis_mesh(obj, obj.name))
-        except ExCloneError as exc:
-            self.report({'ERROR'}, f"{obj.name}: {exc}")
-            return {'CANCELLED'}
+            except Exception as exc:
+                return _failed(self, exc, about=obj.name)
         for obj, landmarks in found.items():
             stored_landmarks.store(obj, landmarks, automatic=True)
         counts = ", ".join(f"{len(marks)} on '{obj.name}'" for obj, marks in found.items())
@@ -392,6 +407,7 @@ class EXCLONE_OT_snap_landmarks(_LandmarkEdit, bpy.types.Operator):
     bl_idname = "exclone.snap_landmarks"
     bl_label = "Snap Landmarks"
 
+    @_reporting
     def execute(self, context):
         snapped = {obj.name: stored_landmarks.snap(obj) for obj in _landmark_objects(context)
                    if stored_landmarks.IDS in obj}
@@ -416,17 +432,14 @@ class EXCLONE_OT_mirror_landmarks(_LandmarkEdit, bpy.types.Operator):
                             ("right", "Right to Left", "The character's right side is copied")],
         default="left")
 
+    @_reporting
     def execute(self, context):
         objects = [obj for obj in _landmark_objects(context) if stored_landmarks.IDS in obj]
-        try:
-            for obj in objects:
-                stored_landmarks.checked(obj, obj.name)
-            # every object's new landmarks first: an error leaves all of them as they were
-            mirrored = {obj: stored_landmarks.mirrored(obj, workflow.basis_mesh(obj, obj.name),
-                                                       self.from_side) for obj in objects}
-        except ExCloneError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
+        for obj in objects:
+            stored_landmarks.checked(obj, obj.name)
+        # every object's new landmarks first: an error leaves all of them as they were
+        mirrored = {obj: stored_landmarks.mirrored(obj, workflow.basis_mesh(obj, obj.name),
+                                                   self.from_side) for obj in objects}
         count = 0
         for obj, (landmarks, changed) in mirrored.items():
             stored_landmarks.store(obj, landmarks, automatic=False)
@@ -441,6 +454,7 @@ class EXCLONE_OT_clear_landmarks(_LandmarkEdit, bpy.types.Operator):
     bl_idname = "exclone.clear_landmarks"
     bl_label = "Clear Landmarks"
 
+    @_reporting
     def execute(self, context):
         objects = [obj for obj in _landmark_objects(context) if stored_landmarks.IDS in obj]
         for obj in objects:
@@ -459,12 +473,9 @@ class EXCLONE_OT_refresh_expressions(bpy.types.Operator):
     def poll(cls, context):
         return _poll_source(cls, context)
 
+    @_reporting
     def execute(self, context):
-        try:
-            source = workflow.resolve_source(context, workflow.target_object(context), False)
-        except ExCloneError as exc:
-            self.report({'ERROR'}, str(exc))
-            return {'CANCELLED'}
+        source, _ = workflow.resolve_source(context, workflow.target_object(context), False)
         listed = context.scene.exclone.expressions
         ticks = {item.name: item.selected for item in listed}
         listed.clear()

@@ -30,12 +30,19 @@ class EXCLONE_PT_main(bpy.types.Panel):
 def draw(layout, context):
     """The panel's contents on `layout` (a UILayout, or anything with its methods)."""
     settings = context.scene.exclone
-    use_library = settings.source_mode == 'LIBRARY'
+    target = _draw_source_and_target(layout, context, settings)
+    _draw_landmarks(layout, target)
+    _draw_engine_buttons(layout, settings)
+    _draw_expressions(layout, settings)
+    _draw_options(layout, settings)
 
+
+def _draw_source_and_target(layout, context, settings):
+    """The source and target choices; returns the target the operators will use (or None)."""
     column = layout.column(align=True)
     column.label(text="Source")
     column.prop(settings, "source_mode", text="")
-    if not use_library:
+    if settings.source_mode != 'LIBRARY':
         column.prop(settings, "source", text="")
     column.label(text="Target")
     column.prop(settings, "target", text="")
@@ -43,7 +50,10 @@ def draw(layout, context):
     if settings.target is None:
         column.label(text=f"Active: {target.name}" if target is not None else "Active: nothing",
                      icon='INFO')
+    return target
 
+
+def _draw_landmarks(layout, target):
     box = layout.box()
     box.label(text="Landmarks", icon='EMPTY_DATA')
     row = box.row(align=True)
@@ -56,6 +66,10 @@ def draw(layout, context):
         kind = "edited" if stored_landmarks.is_edited(target) else "automatic"
         box.label(text=f"{len(stored_landmarks.stored(target))} {kind} landmarks on target")
 
+
+def _draw_engine_buttons(layout, settings):
+    """Register, Remove Preview, Clone and Generate ARKit, with the panel's settings."""
+    use_library = settings.source_mode == 'LIBRARY'
     column = layout.column(align=True)
     row = column.row(align=True)
     register = row.operator("exclone.register_faces", icon='MOD_SHRINKWRAP')
@@ -75,6 +89,8 @@ def draw(layout, context):
     arkit.replace_existing = settings.replace_existing
     _engine_options(arkit, settings)
 
+
+def _draw_expressions(layout, settings):
     box = layout.box()
     box.prop(settings, "show_expressions", icon='DOWNARROW_HLT' if settings.show_expressions
              else 'RIGHTARROW', emboss=False)
@@ -84,6 +100,8 @@ def draw(layout, context):
         box.template_list("EXCLONE_UL_expressions", "", settings, "expressions", settings,
                           "expression_index", rows=5)
 
+
+def _draw_options(layout, settings):
     box = layout.box()
     box.prop(settings, "show_options", icon='DOWNARROW_HLT' if settings.show_options
              else 'RIGHTARROW', emboss=False)

@@ -1,8 +1,11 @@
 """What the operators share: which meshes and landmarks go in, running the engine once per set
 of inputs (a cache), and the options applied to its result.
 
-Meshes are read in their local coordinates from the base mesh (modifiers are not applied, so
-vertex ids match the shape keys); a target with shape keys is read at its reference (basis) key.
+A source is a core.library.ExpressionLibrary (the built-in library, or one read from a mesh
+object's shape keys) plus, kept here beside it, the Blender object it came from (None for the
+built-in library), whose stored landmarks count. Meshes are read in their local coordinates from
+the base mesh (modifiers are not applied, so vertex ids match the shape keys); a target with
+shape keys is read at its reference (basis) key.
 """
 import hashlib
 import threading
@@ -15,23 +18,15 @@ import numpy as np
 from ..core.cloning import CloneSettings, fit_faces, transfer_expressions
 from ..core.errors import Cancelled, ExCloneError
 from ..core import data
-from ..core.library import load_library
+from ..core.landmarks import checked_pairs
+from ..core.library import ExpressionLibrary, load_library
 from ..core.mesh import PolyMesh, vertex_parts
 from . import landmarks as stored_landmarks
 from . import mesh_io, preferences
 
-LIBRARY_DESCRIPTION = "the built-in ARKit library"
 CACHE_SIZE = 3
-
-
-@dataclass
-class Source:
-    description: str
-    mesh: PolyMesh
-    names: list
-    deltas: np.ndarray
-    obj: object = None            # None for the built-in library
-    automatic_landmarks: tuple = None   # (names, ids) found before (the library ships its own)
+# Blender keeps at most 63 bytes of a name (64 with the terminating NUL), cut at a character.
+MAX_NAME_BYTES = 63
 
 
 @dataclass
@@ -78,27 +73,49 @@ def _library(path):
 
 
 def library_source():
-    library = _library(data.LIBRARY_FILE)
-    return Source(LIBRARY_DESCRIPTION, library.mesh, library.names, library.deltas,
-                  automatic_landmarks=library.automatic_landmarks)
+    """The built-in library (read once; shared, so never changed in place)."""
+    return _library(data.LIBRARY_FILE)
 
 
 def object_source(obj):
+    """The expressions of a mesh object's shape keys as an ExpressionLibrary."""
     if obj.type != 'MESH':
         raise ExCloneError(f"Source '{obj.name}' is not a mesh")
     if not has_shape_keys(obj):
         raise ExCloneError(f"Source '{obj.name}' has no shape keys to clone")
     names, deltas = mesh_io.shape_keys_from_object(obj, what="source")
-    return Source(f"'{obj.name}'", basis_mesh(obj, "source"), names, deltas, obj)
+    return ExpressionLibrary(basis_mesh(obj, "source"), names, deltas, description=f"'{obj.name}'")
 
 
 def resolve_source(context, target, use_library):
+    """(the source's ExpressionLibrary, the mesh object it was read from or None for the
+    built-in library)."""
     if use_library or settings_of(context).source_mode == 'LIBRARY':
-        return library_source()
+        return library_source(), None
     obj = source_object(context, target)
     if obj == target:
         raise ExCloneError(f"'{obj.name}' is both source and target: choose another source")
-    return object_source(obj)
+    return object_source(obj), obj
+
+
+def stored_name(name):
+    """`name` as Blender stores it (a shape key's, an object's): cut to MAX_NAME_BYTES bytes of
+    UTF-8, never inside a character. Names are compared this way, or a long one never matches."""
+    return name.encode("utf-8")[:MAX_NAME_BYTES].decode("utf-8", errors="ignore")
+
+
+def key_names(prefix, names):
+    """The new shape keys' names for expressions `names` as Blender will store them; ExCloneError
+    if the prefix is so long that two expressions' names would be cut to the same one."""
+    stored = [stored_name(prefix + name) for name in names]
+    first = {}
+    for name, key in zip(names, stored):
+        if key in first:
+            raise ExCloneError(f"Prefix too long: shape key names keep {MAX_NAME_BYTES} bytes, so "
+                               f"'{first[key]}' and '{name}' would both be named '{key}'; use a "
+                               "shorter prefix")
+        first[key] = name
+    return stored
 
 
 def checked_target(obj):
@@ -121,11 +138,12 @@ def basis_mesh(obj, role):
     return mesh
 
 
-def landmark_pairs(source, target_obj, target_mesh):
+def landmark_pairs(source, source_obj, target_obj, target_mesh):
     """None (the engine's automatic, soft landmarks) unless a side carries edited landmarks; then
     {"source": ids, "target": ids} of the names both sides have, as hard constraints.
+    source_obj: the object `source` was read from (None: the built-in library).
     Raises ExCloneError for stale, off-surface or too few landmarks."""
-    sides = [(source.obj, "source"), (target_obj, "target")]
+    sides = [(source_obj, "source"), (target_obj, "target")]
     for obj, role in sides:
         if obj is not None and stored_landmarks.IDS in obj:
             stored_landmarks.checked(obj, role)
@@ -138,12 +156,15 @@ def landmark_pairs(source, target_obj, target_mesh):
         return stored_landmarks.stored(obj) if stored_landmarks.IDS in obj \
             else stored_landmarks.detect(mesh)
 
-    src, tgt = ids_of(source.obj, source.mesh), ids_of(target_obj, target_mesh)
+    src, tgt = ids_of(source_obj, source.mesh), ids_of(target_obj, target_mesh)
     common = [name for name in src if name in tgt]
-    if len(common) < 4:
-        raise ExCloneError(f"Source and target share only {len(common)} landmark names (at least "
-                           "4 needed): run Auto Landmarks on both")
-    return {"source": [src[n] for n in common], "target": [tgt[n] for n in common]}
+    pairs = {"source": [src[n] for n in common], "target": [tgt[n] for n in common]}
+    try:
+        checked_pairs(pairs, len(source.mesh.vertices), len(target_mesh.vertices))
+    except ExCloneError as exc:
+        raise ExCloneError(f"{exc} (the landmark names source and target share): run Auto "
+                           "Landmarks on both") from exc
+    return pairs
 
 
 def digest(*parts):
@@ -229,12 +250,12 @@ class EngineJob:
     in the main thread). cancel() makes the engine's next progress call raise Cancelled.
     """
 
-    def __init__(self, source, target_mesh, landmarks, clone_settings):
+    def __init__(self, *inputs):
+        """inputs: run_engine's (source, target mesh, landmarks, settings[, transfer])."""
         self.fraction, self.message = 0.0, "starting"
         self.run = self.error = None
         self._cancel = threading.Event()
-        self._thread = threading.Thread(
-            target=self._work, args=(source, target_mesh, landmarks, clone_settings), daemon=True)
+        self._thread = threading.Thread(target=self._work, args=inputs, daemon=True)
 
     def _progress(self, fraction, message):
         if self._cancel.is_set():
@@ -244,9 +265,7 @@ class EngineJob:
     def _work(self, *inputs):
         try:
             self.run = run_engine(*inputs, progress=self._progress)
-        except (ExCloneError, Cancelled) as exc:
-            self.error = exc
-        except Exception as exc:  # reported by the operator; the thread must not die silently
+        except Exception as exc:  # any, Cancelled too: the operator reports it in the main thread
             self.error = exc
 
     def start(self):

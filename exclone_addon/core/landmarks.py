@@ -403,12 +403,19 @@ def checked_pairs(pairs, n_source, n_target):
         raise ExCloneError(f"landmarks: {len(src)} source ids but {len(tgt)} target ids")
     if len(src) < MIN_PAIRS:
         raise ExCloneError(f"landmarks: {len(src)} pairs given, at least {MIN_PAIRS} are needed")
-    for ids, n, what in ((src, n_source, "source"), (tgt, n_target, "target")):
-        if ids.min() < 0 or ids.max() >= n:
-            raise ExCloneError(f"landmarks: a {what} vertex id is outside 0..{n - 1}")
-        if len(np.unique(ids)) != len(ids):
-            raise ExCloneError(f"landmarks: a {what} vertex id is used twice")
-    return src, tgt
+    return checked_ids(src, n_source, "source"), checked_ids(tgt, n_target, "target")
+
+
+def checked_ids(ids, n, what):
+    """One mesh's landmark vertex ids (int64) when each is a vertex of its `n` and none is used
+    twice; ExCloneError naming `what` (the mesh) otherwise. checked_pairs' check of each side,
+    also for ids stored with one mesh."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if len(ids) and (ids.min() < 0 or ids.max() >= n):
+        raise ExCloneError(f"landmarks: a {what} vertex id is outside 0..{n - 1}")
+    if len(np.unique(ids)) != len(ids):
+        raise ExCloneError(f"landmarks: a {what} vertex id is used twice")
+    return ids
 
 
 def automatic_landmarks(vertices, triangles, frame=None, template=None, template_normals=None):
