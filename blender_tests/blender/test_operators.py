@@ -359,6 +359,25 @@ def test_only_ticked_expressions_are_cloned(head):
         bpy.ops.exclone.clone_expressions(only_ticked=True, prefix="x_")
 
 
+def test_a_mesh_with_shape_keys_is_a_source(head, library, capfd):
+    """The source read from an object (its base mesh and keys), named by the object in reports;
+    Register then Clone reuses the fit."""
+    source = add_object("source", library.mesh, active=False)
+    chosen = ["jawOpen", "eyeBlink_L"]
+    mesh_io.write_shape_keys(source, chosen, library.subset(chosen).deltas)
+    target = add_object("head", head)
+    source.select_set(True)
+    assert bpy.ops.exclone.refresh_expressions() == {'FINISHED'}
+    assert reports(capfd)[-1] == "2 expressions from 'source'"
+    assert bpy.ops.exclone.register_faces(preview=False, preset="fast") == {'FINISHED'}
+    assert reports(capfd)[-1].startswith("Registered 'source' onto 'head': fit error ")
+    assert bpy.ops.exclone.clone_expressions(preset="fast") == {'FINISHED'}
+    assert reports(capfd)[-1].endswith("(registration reused)")
+    cloned = keys(target)
+    assert list(cloned) == chosen and list(keys(source)) == chosen
+    assert 0.45 < lip_parting(head, cloned["jawOpen"]) < 0.9
+
+
 def test_generate_arkit_shapes_gives_apples_names(head, capfd):
     obj = add_object("head", head)
     assert bpy.ops.exclone.generate_arkit_shapes() == {'FINISHED'}

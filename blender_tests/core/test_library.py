@@ -41,6 +41,7 @@ def test_bundled_library_loads(library):
     assert library.deltas.shape == (57, 26719, 3) and library.deltas.dtype == np.float64
     assert np.isfinite(library.mesh.vertices).all() and np.isfinite(library.deltas).all()
     assert library.landmarks68.shape == (68,)
+    assert library.description == "the built-in ARKit library"
     # every expression moves something; jawOpen moves the chin by centimetres
     assert (np.abs(library.deltas).max(axis=(1, 2)) > 0).all()
     assert np.abs(library.deltas[library.names.index("jawOpen")]).max() > 1.0
@@ -106,6 +107,7 @@ def test_obj_folder_from_written_objs(tmp_path):
     (tmp_path / "notes.txt").write_text("not an expression")
     lib = load_obj_folder(tmp_path)
     assert lib.names == ["lower", "raise"]
+    assert lib.description == str(tmp_path)
     np.testing.assert_allclose(lib.deltas, np.stack([-shift, shift]), atol=1e-5)
 
 
@@ -143,6 +145,8 @@ def test_subset(library):
     assert sub.names == ["jawOpen", "eyeBlink_L"]
     np.testing.assert_array_equal(sub.deltas[0], library.deltas[library.names.index("jawOpen")])
     assert sub.mesh is library.mesh and sub.parts == library.parts
+    assert sub.description == library.description
+    assert sub.automatic_landmarks is library.automatic_landmarks
     with pytest.raises(ExCloneError) as err:
         library.subset(["jawOpen", "smileWide"])
     assert "smileWide" in str(err.value) and "mouthSmile_L" in str(err.value)

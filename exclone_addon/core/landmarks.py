@@ -1,4 +1,4 @@
-"""Automatic corresponding landmarks (METHOD.md, "Automatic landmarks").
+"""Automatic corresponding landmarks (docs/method.md §4).
 
 Fourteen points by geometric heuristics on the face's canonical frame (core.orientation: +X the
 character's left, +Y up, +Z forward), walking surface profiles: the mid-sagittal profile (front-most
