@@ -121,11 +121,11 @@ class _Engine:
             return self.execute(context)
         try:
             plan = self.plan(context)
+            if isinstance(plan, set):
+                return plan
+            self._plan, self._digest = plan, workflow.mesh_digest(plan.target)
         except Exception as exc:
             return _failed(self, exc)
-        if isinstance(plan, set):
-            return plan
-        self._plan, self._digest = plan, workflow.mesh_digest(plan.target)
         self._job = workflow.EngineJob(*plan.inputs).start()
         window_manager = context.window_manager
         self._timer = window_manager.event_timer_add(0.1, window=context.window)
@@ -156,17 +156,19 @@ class _Engine:
         if job.error is not None:
             return _failed(self, job.error)
         try:
-            unchanged = workflow.mesh_digest(self._plan.target) == self._digest
-        except ReferenceError:            # the target was deleted meanwhile
-            unchanged = False
-        if not unchanged:
-            self.report({'ERROR'}, "The target was edited or removed while the engine ran; "
-                                   "nothing was written: run again")
-            return {'CANCELLED'}
-        try:
+            if not self._target_unchanged():
+                self.report({'ERROR'}, "The target was edited or removed while the engine ran; "
+                                       "nothing was written: run again")
+                return {'CANCELLED'}
             return self._plan.finish(job.run)
         except Exception as exc:
             return _failed(self, exc)
+
+    def _target_unchanged(self):
+        try:
+            return workflow.mesh_digest(self._plan.target) == self._digest
+        except ReferenceError:            # the target was deleted meanwhile
+            return False
 
 
 class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):

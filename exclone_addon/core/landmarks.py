@@ -102,7 +102,7 @@ def _walk(centres, zbin, pts, start, direction, prominence, smooth_bins):
     if len(ahead) < 3:
         return [], []
     real = np.flatnonzero(keep[ahead])
-    if not len(real):
+    if not len(real):    # only interpolation ahead: no surface point to give
         return [], []
 
     def nearest_real(k):
