@@ -252,7 +252,7 @@ class Inputs:
     source: object        # core.library.ExpressionLibrary
     target: files.Target
     landmarks: dict       # {"source": ids, "target": ids} or None (automatic)
-    files: list           # every input file read
+    read: list            # every input file read (none may be overwritten)
 
 
 def read_inputs(args, paths, timings):
