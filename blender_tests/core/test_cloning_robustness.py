@@ -147,15 +147,17 @@ def test_unknown_settings_say_what_is_valid(source, settings, valid):
 
 
 def test_degenerate_geometry_is_a_clear_error_not_a_nan():
-    """Finite but degenerate input to the steps themselves: coincident points to align, a
+    """Finite but degenerate input to the steps themselves: points on a line to align, a
     source region with no triangles, an unknown preset or formulation."""
     from exclone_addon.core import deformation
     from exclone_addon.core.registration import Schedule, register, similarity_transform
     from exclone_addon.core.surface import Surface
     points = np.ones((5, 3))
     spread = np.random.default_rng(0).normal(size=(5, 3))
-    for a, b in ((points, spread), (spread, points), (np.zeros((5, 3)), spread)):
-        with pytest.raises(ExCloneError, match="coincide"):
+    line = np.linspace(0, 1, 5)[:, None] * [1.0, 2.0, 3.0] + 7.0
+    for a, b in ((points, spread), (spread, points), (np.zeros((5, 3)), spread), (line, spread),
+                 (spread, line)):
+        with pytest.raises(ExCloneError, match="on one line or at one point"):
             similarity_transform(a, b)
     square = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
     target = Surface(square, [[0, 1, 2], [0, 2, 3]])

@@ -313,21 +313,30 @@ def transfer_expressions(fit, source_deltas, names):
     the fit's). The transfer system is factorised once per fit and reused by later calls."""
     start = time.perf_counter()
     deltas = _checked_deltas(source_deltas, names, fit.source)
-    target_vertices = fit.target_region.vertices
-    aligned_deltas = deltas @ fit.rotation.T * fit.scale
-    anchors, rest_at, moves_at = _source_at_mapped_vertices(fit, aligned_deltas)
-    wanted = _wanted_gradients(fit, aligned_deltas, rest_at, moves_at)
-    if fit._transfer is None:
-        fit._transfer = Transfer(target_vertices, fit.target_region.triangles, fit.weights,
-                                 fit.formulation)
-    result = fit._transfer(wanted, moves_at[:, anchors], anchors)
-    _follow_unsolved(result, fit.target_region, fit.target.triangles())
-    if not np.all(np.isfinite(result)):
-        raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
+    result = np.zeros((len(deltas), len(fit.target_region.vertices), 3))
+    # an expression that moves nothing gives exactly nothing (the solve would leave ~1e-16)
+    moving = deltas.any(axis=(1, 2))
+    if moving.any():
+        result[moving] = _transferred(fit, deltas[moving])
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
     timings["total"] = sum(timings.values())
     return CloneResult(list(names), result, fit.source_landmarks, fit.target_landmarks,
                        fit.landmark_names, fit.registered_source, timings, dict(fit.quality))
+
+
+def _transferred(fit, deltas):
+    """(E, n_target, 3) target displacements of the source expressions' deltas (E, n_source, 3)."""
+    aligned_deltas = deltas @ fit.rotation.T * fit.scale
+    anchors, rest_at, moves_at = _source_at_mapped_vertices(fit, aligned_deltas)
+    wanted = _wanted_gradients(fit, aligned_deltas, rest_at, moves_at)
+    if fit._transfer is None:
+        fit._transfer = Transfer(fit.target_region.vertices, fit.target_region.triangles,
+                                 fit.weights, fit.formulation)
+    result = fit._transfer(wanted, moves_at[:, anchors], anchors)
+    _follow_unsolved(result, fit.target_region, fit.target.triangles())
+    if not np.all(np.isfinite(result)):
+        raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
+    return result
 
 
 def _source_at_mapped_vertices(fit, aligned_deltas):

@@ -94,19 +94,28 @@ class ReusedOrderingSolver:
 def similarity_transform(source_points, target_points):
     """Least-squares similarity (R, s, t) with target ~ s R source + t.
 
-    ExCloneError if either point set has no extent (all its points coincide): no rotation or
-    scale can be read from it.
+    ExCloneError if either point set lies on one line or at one point: no rotation can be read
+    from it.
     """
+    for points, what in ((source_points, "source"), (target_points, "target")):
+        if not _spans_a_plane(points):
+            raise ExCloneError(f"cannot align the faces: the {what} points lie on one line or at "
+                               "one point; landmarks must be spread over the face")
     src_c, dst_c = source_points.mean(axis=0), target_points.mean(axis=0)
     a, b = source_points - src_c, target_points - dst_c
-    for points, spread, what in ((source_points, a, "source"), (target_points, b, "target")):
-        if not np.abs(spread).max(initial=0.0) > 1e-12 * np.abs(points).max(initial=0.0):
-            raise ExCloneError(f"cannot align the faces: the {what} points all coincide; "
-                               "landmarks must be spread over the face")
     rotation, _ = Rotation.align_vectors(b, a)
     r = rotation.as_matrix()
     s = float(np.einsum("ij,ij->", b, a @ r.T) / np.einsum("ij,ij->", a, a))
     return r, s, dst_c - s * r @ src_c
+
+
+def _spans_a_plane(points):
+    """Whether the points (k, 3) reach out in two directions at least (relative to their own
+    size and distance from the origin)."""
+    if len(points) < 3:
+        return False
+    extent = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
+    return bool(extent[1] > 1e-9 * max(extent[0], np.abs(points).max()))
 
 
 def similarity_icp(source_points, source_normals, target, max_distance=np.inf, iterations=100,
