@@ -81,17 +81,20 @@ def read_obj(path):
 
 
 def _obj_numbers(line, kind, where):
-    """A vertex line's three coordinates (kind float) or a face line's vertex indices (int)."""
+    """A vertex line's three coordinates (kind float; more, e.g. a colour, are ignored) or a
+    face line's vertex indices (kind int)."""
     tokens = line.split()[1:]
     try:
         if kind is float:
-            if len(tokens) < 3:
-                raise ValueError("a vertex needs three coordinates")
-            return [float(tok) for tok in tokens[:3]]     # more (a colour) is allowed
-        return [int(tok.split("/")[0]) for tok in tokens]
-    except ValueError as exc:
+            numbers = [float(tok) for tok in tokens[:3]] if len(tokens) >= 3 else None
+        else:
+            numbers = [int(tok.split("/")[0]) for tok in tokens]
+    except ValueError:
+        numbers = None
+    if numbers is None:
         what = "vertex" if kind is float else "face"
-        raise MeshError(f"{where}: malformed {what} line {line.strip()[:40]!r}") from exc
+        raise MeshError(f"{where}: malformed {what} line {line.strip()[:40]!r}")
+    return numbers
 
 
 def write_obj(path, mesh, header=None):
