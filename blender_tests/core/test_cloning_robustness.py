@@ -159,10 +159,15 @@ def test_degenerate_geometry_is_a_clear_error_not_a_nan():
                  (spread, line)):
         with pytest.raises(ExCloneError, match="on one line or at one point"):
             similarity_transform(a, b)
+    corners = np.array([[1.0, 1, 0], [-1, 1, 0], [-1, -1, 0], [1, -1, 0]])
+    with pytest.raises(ExCloneError, match="fix no rotation"):     # a square paired crosswise
+        similarity_transform(corners, corners[[2, 1, 3, 0]])
     square = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
     target = Surface(square, [[0, 1, 2], [0, 2, 3]])
     with pytest.raises(ExCloneError, match="lie on no face of the source"):
         register(Surface(square, np.zeros((0, 3))), target, [0], square[:1])
+    from exclone_addon.core.proximity import SegmentSet
+    assert SegmentSet(square, [[0, 1]]).closest(np.zeros((0, 3)))[0].shape == (0, 3)
     with pytest.raises(ExCloneError, match="fast, balanced, precise"):
         Schedule.preset("quick")
     with pytest.raises(ExCloneError, match="reduced, augmented"):

@@ -118,9 +118,9 @@ class SegmentSet:
 
     def closest(self, points):
         """Returns (closest points (m,3), edge ids (m,), distances (m,), weight of the 2nd end (m,))."""
-        points = np.asarray(points, dtype=np.float64)
+        points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         m = len(points)
-        if self.tree is None:
+        if self.tree is None or m == 0:    # no segments (a closed mesh) or nothing to look up
             return np.zeros((m, 3)), np.full(m, -1), np.full(m, np.inf), np.zeros(m)
         _, cand = self.tree.query(points, k=self.k)
         cand = cand.reshape(m, -1)

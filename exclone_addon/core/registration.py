@@ -94,8 +94,9 @@ class ReusedOrderingSolver:
 def similarity_transform(source_points, target_points):
     """Least-squares similarity (R, s, t) with target ~ s R source + t.
 
-    ExCloneError if either point set lies on one line or at one point: no rotation can be read
-    from it.
+    ExCloneError if no rotation can be read from the pairs: either point set lies on one line
+    or at one point, or the pairs cross each other so that no rotation fits them better than
+    another (their cross-covariance has rank 1).
     """
     for points, what in ((source_points, "source"), (target_points, "target")):
         if not _spans_a_plane(points):
@@ -103,19 +104,23 @@ def similarity_transform(source_points, target_points):
                                "one point; landmarks must be spread over the face")
     src_c, dst_c = source_points.mean(axis=0), target_points.mean(axis=0)
     a, b = source_points - src_c, target_points - dst_c
+    if not _spans_a_plane(b.T @ a, centred=True):
+        raise ExCloneError("cannot align the faces: the point pairs fix no rotation (they pair "
+                           "points that do not correspond); check the landmarks")
     rotation, _ = Rotation.align_vectors(b, a)
     r = rotation.as_matrix()
     s = float(np.einsum("ij,ij->", b, a @ r.T) / np.einsum("ij,ij->", a, a))
     return r, s, dst_c - s * r @ src_c
 
 
-def _spans_a_plane(points):
-    """Whether the points (k, 3) reach out in two directions at least (relative to their own
-    size and distance from the origin)."""
-    if len(points) < 3:
+def _spans_a_plane(points, centred=False):
+    """Whether the points (k, 3) reach out in two directions at least, relative to their own
+    size and (unless centred) their distance from the origin: rank 2 at least."""
+    if len(points) < 2 or (len(points) < 3 and not centred):
         return False
-    extent = np.linalg.svd(points - points.mean(axis=0), compute_uv=False)
-    return bool(extent[1] > 1e-9 * max(extent[0], np.abs(points).max()))
+    spread = points if centred else points - points.mean(axis=0)
+    extent = np.linalg.svd(spread, compute_uv=False)
+    return bool(extent[1] > 1e-9 * max(extent[0], 0.0 if centred else np.abs(points).max()))
 
 
 def similarity_icp(source_points, source_normals, target, max_distance=np.inf, iterations=100,
