@@ -1,7 +1,7 @@
 """The webcam operators: Drive from Webcam (a take, modal in a window, a loop in execute()), Stop
 and Calibrate on the running take, Refine Take on the last recorded one, Calibrate Camera.
 
-Every error reaches the user as one line (core.errors.user_message): before a take starts
+Every error reaches the user as one line (blender.reporting): before a take starts
 nothing changes; an error during a take ends it, and what it recorded stays as one undo step.
 """
 import bpy
@@ -10,9 +10,10 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 
 from ..core import capture
 from ..core.camera_calibration import calibrate_camera
-from ..core.errors import ExCloneError, user_message
+from ..core.errors import ExCloneError
 from . import camera_preview, webcam_take
 from .avatar_rig import checked_avatar
+from .reporting import failed, reporting
 from .properties import HEAD_TARGET_ITEMS, KEY_SET_ITEMS, WEBCAM_SOURCE_ITEMS
 
 
@@ -78,7 +79,7 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
                 max_frames=self.max_frames, use_calibration=self.use_calibration,
                 progress=lambda fraction, *_: window_manager.progress_update(fraction))
         except Exception as exc:    # whatever stops the start, the user reads one line
-            self.report({'ERROR'}, user_message(exc))
+            failed(self, exc)
             return None
         finally:
             window_manager.progress_end()
@@ -204,13 +205,11 @@ class EXCLONE_OT_refine_take(bpy.types.Operator):
             return False
         return True
 
+    @reporting
     def execute(self, context):
         take = webcam_take.last_take
-        try:
-            timestamps, weights, names = take.session.refine_take(self.closeness, self.iterations)
-        except Exception as exc:    # nothing is written before the refinement succeeds
-            self.report({'ERROR'}, user_message(exc))
-            return {'CANCELLED'}
+        # nothing is written before the refinement succeeds
+        timestamps, weights, names = take.session.refine_take(self.closeness, self.iterations)
         count, changes = take.rekey(timestamps, weights, names)
         change = f", mean change {np.mean(changes):.3f}" if changes else ""
         self.report({'INFO'}, f"Refined {count} frames of the take on '{take.avatar.name}'{change}")
@@ -243,15 +242,12 @@ class EXCLONE_OT_calibrate_camera(bpy.types.Operator):
         with capture.open_source(spec) as source:
             return list(source)
 
+    @reporting
     def execute(self, context):
-        try:
-            frames = self._frames(context)
-            camera, rms = calibrate_camera([frame.image for frame in frames],
-                                           (self.columns, self.rows),
-                                           names=[frame.name for frame in frames])
-        except Exception as exc:    # nothing is stored before the calibration succeeds
-            self.report({'ERROR'}, user_message(exc))
-            return {'CANCELLED'}
+        # nothing is stored before the calibration succeeds
+        frames = self._frames(context)
+        camera, rms = calibrate_camera([frame.image for frame in frames], (self.columns, self.rows),
+                                       names=[frame.name for frame in frames])
         webcam = context.scene.exclone.webcam
         height, width = frames[0].image.shape[:2]
         webcam.fx, webcam.fy, webcam.cx, webcam.cy = camera.fx, camera.fy, camera.cx, camera.cy

@@ -5,44 +5,23 @@ library, the scene's source object or the selected mesh with shape keys. Every o
 its input before it changes anything, and is one undo step. Whatever goes wrong (a user error, a
 cancel, a bug) is reported as one line and the operator returns CANCELLED.
 """
-import functools
 import time
 from dataclasses import dataclass
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from ..core.errors import Cancelled, ExCloneError, user_message
+from ..core.errors import ExCloneError
 from ..core.library import arkit_blendshapes
 from ..core.mesh import PolyMesh
 from ..core.reports import summary
 from . import landmarks as stored_landmarks
 from . import mesh_io, workflow
+from .reporting import failed, reporting
 from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
 
 PREVIEW_TAG = "exclone_preview"
 PREVIEW_NAME = "ExClone registration preview"
-
-
-def _failed(operator, error, about=None):
-    """Report an exception as the operator's one line; {'CANCELLED'}."""
-    if isinstance(error, Cancelled):
-        operator.report({'WARNING'}, "Cancelled; nothing was changed")
-    else:
-        message = user_message(error)
-        operator.report({'ERROR'}, f"{about}: {message}" if about else message)
-    return {'CANCELLED'}
-
-
-def _reporting(execute):
-    """An operator's execute(self, context) whose every exception is reported as one line."""
-    @functools.wraps(execute)
-    def execute_reporting(self, context):
-        try:
-            return execute(self, context)
-        except Exception as exc:   # a bug too: one line, never a traceback in the user's face
-            return _failed(self, exc)
-    return execute_reporting
 
 
 def _poll_target(cls, context):
@@ -112,7 +91,7 @@ class _Engine:
                 *plan.inputs, progress=lambda fraction, _: window_manager.progress_update(fraction))
             return plan.finish(run)
         except Exception as exc:
-            return _failed(self, exc)
+            return failed(self, exc)
         finally:
             window_manager.progress_end()
 
@@ -125,7 +104,7 @@ class _Engine:
                 return plan
             self._plan, self._digest = plan, workflow.mesh_digest(plan.target)
         except Exception as exc:
-            return _failed(self, exc)
+            return failed(self, exc)
         self._job = workflow.EngineJob(*plan.inputs).start()
         window_manager = context.window_manager
         self._timer = window_manager.event_timer_add(0.1, window=context.window)
@@ -154,7 +133,7 @@ class _Engine:
 
     def _finish_job(self, job):
         if job.error is not None:
-            return _failed(self, job.error)
+            return failed(self, job.error)
         try:
             if not self._target_unchanged():
                 self.report({'ERROR'}, "The target was edited or removed while the engine ran; "
@@ -162,7 +141,7 @@ class _Engine:
                 return {'CANCELLED'}
             return self._plan.finish(job.run)
         except Exception as exc:
-            return _failed(self, exc)
+            return failed(self, exc)
 
     def _target_unchanged(self):
         try:
@@ -342,7 +321,7 @@ class EXCLONE_OT_remove_preview(bpy.types.Operator):
             return False
         return True
 
-    @_reporting
+    @reporting
     def execute(self, context):
         self.report({'INFO'}, f"Removed {_remove_previews()} preview object(s)")
         return {'FINISHED'}
@@ -374,7 +353,7 @@ class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
     def poll(cls, context):
         return _poll_target(cls, context)
 
-    @_reporting
+    @reporting
     def execute(self, context):
         started = time.perf_counter()
         found = {}   # every object's landmarks first: an error leaves all of them as they were
@@ -382,7 +361,7 @@ class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
             try:
                 found[obj] = stored_landmarks.detect(workflow.basis_mesh(obj, obj.name))
             except Exception as exc:
-                return _failed(self, exc, about=obj.name)
+                return failed(self, exc, about=obj.name)
         for obj, landmarks in found.items():
             stored_landmarks.store(obj, landmarks, automatic=True)
         counts = ", ".join(f"{len(marks)} on '{obj.name}'" for obj, marks in found.items())
@@ -409,7 +388,7 @@ class EXCLONE_OT_snap_landmarks(_LandmarkEdit, bpy.types.Operator):
     bl_idname = "exclone.snap_landmarks"
     bl_label = "Snap Landmarks"
 
-    @_reporting
+    @reporting
     def execute(self, context):
         snapped = {obj.name: stored_landmarks.snap(obj) for obj in _landmark_objects(context)
                    if stored_landmarks.IDS in obj}
@@ -434,7 +413,7 @@ class EXCLONE_OT_mirror_landmarks(_LandmarkEdit, bpy.types.Operator):
                             ("right", "Right to Left", "The character's right side is copied")],
         default="left")
 
-    @_reporting
+    @reporting
     def execute(self, context):
         objects = [obj for obj in _landmark_objects(context) if stored_landmarks.IDS in obj]
         for obj in objects:
@@ -456,7 +435,7 @@ class EXCLONE_OT_clear_landmarks(_LandmarkEdit, bpy.types.Operator):
     bl_idname = "exclone.clear_landmarks"
     bl_label = "Clear Landmarks"
 
-    @_reporting
+    @reporting
     def execute(self, context):
         objects = [obj for obj in _landmark_objects(context) if stored_landmarks.IDS in obj]
         for obj in objects:
@@ -475,7 +454,7 @@ class EXCLONE_OT_refresh_expressions(bpy.types.Operator):
     def poll(cls, context):
         return _poll_source(cls, context)
 
-    @_reporting
+    @reporting
     def execute(self, context):
         source, _ = workflow.resolve_source(context, workflow.target_object(context), False)
         listed = context.scene.exclone.expressions
