@@ -5,13 +5,18 @@ without any reference implementation: augmented gradient = A, reduced gradient =
 the triangle's plane (A V V^+).
 """
 
+import dataclasses
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
-from exclone_addon.core import data, deformation
+from exclone_addon.core import data, deformation, transfer
+from exclone_addon.core.cloning import fit_faces, transfer_expressions
+from exclone_addon.core.errors import ExCloneError
+from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import read_obj, triangle_normals, vertex_adjacency
 from exclone_addon.core.proximity import TriangleSurface, closest_points_on_triangles
 from exclone_addon.core.registration import ReusedOrderingSolver
@@ -231,6 +236,52 @@ def test_transfer_ignores_gradients_of_uncovered_triangles(head):
     gradients = deformation.full_gradients(v, (1.5 * v)[None], tris)
     d = transfer(gradients, np.full((1, 3, 3), [0.0, 0.0, 0.2]), np.array([0, 1, 2]))
     np.testing.assert_allclose(d[0], np.broadcast_to([0.0, 0.0, 0.2], v.shape), atol=1e-9)
+
+
+def test_cholesky_and_superlu_give_the_same_clone_of_the_library_on_the_demo_head(monkeypatch):
+    """The sparse Cholesky and its SuperLU fallback solve the same system: every bundled
+    expression cloned onto the demo head agrees to 1e-9 of the largest displacement."""
+    pytest.importorskip("cholespy")
+    library = load_library()
+    fit = fit_faces(library.mesh, data.demo_head(), source_landmarks=library.automatic_landmarks)
+    names = list(library.names)
+    by_cholesky = transfer_expressions(fit, library.deltas, names).deltas
+    assert fit._transfer.factorisation == transfer.CHOLESKY
+    monkeypatch.setattr(transfer, "cholespy", None)      # as in a Blender without the wheel
+    unfactorised = dataclasses.replace(fit, _transfer=None)
+    by_lu = transfer_expressions(unfactorised, library.deltas, names).deltas
+    assert unfactorised._transfer.factorisation == transfer.LU
+    scale = np.abs(by_lu).max()
+    assert scale > 0
+    assert np.abs(by_cholesky - by_lu).max() <= 1e-9 * scale
+
+
+def test_factorised_falls_back_to_superlu_on_an_indefinite_matrix():
+    rng = np.random.default_rng(3)
+    matrix = sp.diags([4.0, -1.0, 2.0, 3.0]).tocsc() + sp.csc_matrix(0.1 * np.ones((4, 4)))
+    rhs = rng.normal(size=(4, 6))
+    name, solve = transfer.factorised(matrix.tocsc())
+    assert name == transfer.LU
+    np.testing.assert_allclose(matrix @ solve(rhs), rhs, atol=1e-12)
+
+
+def test_factorised_uses_cholesky_on_a_positive_definite_matrix_and_solves_every_column(head):
+    pytest.importorskip("cholespy")
+    v, tris = head
+    adjacency = vertex_adjacency(len(v), tris).astype(np.float64)
+    laplacian = sp.diags(np.asarray(adjacency.sum(axis=1)).ravel()) - adjacency
+    matrix = (laplacian + 1e-3 * sp.identity(len(v))).tocsc()
+    rhs = np.random.default_rng(5).normal(size=(len(v), 9))
+    name, solve = transfer.factorised(matrix)
+    assert name == transfer.CHOLESKY
+    np.testing.assert_allclose(solve(rhs), spsolve(matrix, rhs), rtol=0, atol=1e-9)
+
+
+def test_a_singular_transfer_system_is_a_user_error():
+    """Neither factorisation solves an exactly singular matrix: the user is told to clean up."""
+    matrix = sp.diags([1.0, 0.0, 2.0]).tocsc()
+    with pytest.raises(ExCloneError, match="no unique solution"):
+        transfer.factorised(matrix)
 
 
 def test_reused_ordering_solver_matches_spsolve_on_a_changing_diagonal(head):
