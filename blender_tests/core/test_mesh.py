@@ -103,3 +103,78 @@ def test_surface_answers_once_and_a_moved_copy_keeps_sign_and_connections():
     squashed = tent.moved(vertices * [1, 1, 0.01])          # moving never turns it inside out
     assert squashed.sign == tent.sign and squashed.border_edges is tent.border_edges
     assert tent.closest([[0.5, 0.5, 3.0]])[2][0] == pytest.approx(2.0)
+
+
+# ------------------------------------------------------------------------------- OBJ reader
+def reference_obj(path):
+    """The plain reading read_obj must match: each line on its own, Python's float() and int()."""
+    vertices, faces = [], []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            words = line.split()[1:]
+            if line.startswith("v "):
+                vertices.append([float(word) for word in words[:3]])
+            elif line.startswith("f "):
+                faces.append([int(word.split("/")[0]) for word in words])
+    n = len(vertices)
+    loops = [i + n if i < 0 else i - 1 for face in faces for i in face]
+    return (np.array(vertices, dtype=np.float64).reshape(-1, 3),
+            np.array([len(face) for face in faces], dtype=np.int64), np.array(loops, dtype=np.int64))
+
+
+def assert_reads_as_reference(path):
+    mesh, (vertices, totals, loops) = read_obj(path), reference_obj(path)
+    assert np.array_equal(mesh.vertices, vertices, equal_nan=True)
+    assert mesh.loop_totals.tolist() == totals.tolist()
+    assert mesh.loop_vertices.tolist() == loops.tolist()
+    assert mesh.vertices.dtype == np.float64 and mesh.loop_vertices.dtype == np.int64
+    only = read_obj(path, faces=False)
+    assert np.array_equal(only.vertices, vertices, equal_nan=True) and not len(only.loop_totals)
+
+
+EVERY_SYNTAX = [
+    # plain triangles, no newline at the end
+    "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3",
+    # v/vt/vn forms, mixed polygon sizes, negative ids, comments, groups, other records
+    "# made by hand\nmtllib x.mtl\no head\nv 0 0 0\nv 1.5 0 0\nv 1 1 0\nv 0 1e-3 -2.25E+2\n"
+    "vt 0 0\nvn 0 0 1\ng part\nusemtl skin\ns off\nf 1/1/1 2/1/1 3/1/1 4/1/1\nf -4//1 -3//1 -1//1\n"
+    "f 2/1 3/1 4/1\nl 1 2\n",
+    # CRLF and old-Mac line ends, tabs, repeated spaces, blank lines, a vertex colour
+    "v 0 0 0 1 0 0\r\nv 1\t0 0\r\n\r\nv 0  1   0\rf 1 2 3\r\n",
+    # the same corner count everywhere (numpy's reshape path) with four-number vertices
+    "v 0 0 0 1\nv 1 0 0 1\nv 1 1 0 1\nv 0 1 0 1\nf 4 3 2 1\nf 1 2 3 4\n",
+    # a line longer than the bulk reader takes, Python number spellings, a face without corners
+    "v 0 0 0 " + "0 " * 150 + "\nv 1_0 +2 -0\nv inf -nan 1.\nf 1 2 3\nf \n",
+    # indented lines are no records; a record's own word again inside a line
+    "  v 9 9 9\nv 0 0 0 v\nv 1 0 0\nv 0 1 0\n f 9 9 9\nf 1 2 3\n",
+    # vertices only
+    "v 1 2 3\nv 4 5 6\n",
+    # nothing at all
+    "",
+]
+
+
+@pytest.mark.parametrize("text", EVERY_SYNTAX)
+def test_obj_reader_matches_a_plain_reading(tmp_path, text):
+    path = tmp_path / "m.obj"
+    path.write_bytes(text.encode("utf-8"))
+    assert_reads_as_reference(path)
+
+
+def test_obj_reader_matches_a_plain_reading_of_real_files(shared_data):
+    from exclone_addon.core import data
+    paths = sorted(data.DATA_DIR.glob("*.obj")) + sorted(shared_data.rglob("*.obj"))
+    assert len(paths) >= 10
+    for path in paths:
+        assert_reads_as_reference(path)
+
+
+def test_vertices_only_skips_malformed_faces_but_not_vertices(tmp_path):
+    path = tmp_path / "m.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 two 3\nf 1 2 9\n")
+    assert read_obj(path, faces=False).vertices.shape == (3, 3)
+    with pytest.raises(MeshError, match="line 4: malformed face"):
+        read_obj(path)
+    path.write_text("v 0 0 0\nv 1 0\n")
+    with pytest.raises(MeshError, match="line 2: malformed vertex"):
+        read_obj(path, faces=False)

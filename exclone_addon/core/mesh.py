@@ -55,23 +55,79 @@ def triangulate(loop_totals, loop_vertices):
     return np.stack([loops[first], loops[first + k + 1], loops[first + k + 2]], axis=1)
 
 
-def read_obj(path):
-    """Vertices and polygons of a Wavefront OBJ (all groups and objects merged, file order kept).
+def read_obj(path, faces=True):
+    """Vertices and polygons of a Wavefront OBJ (all groups and objects merged, file order kept);
+    faces=False reads the vertices only (no polygons, face lines not looked at).
     MeshError naming the file and line for anything that is not a vertex or face it can read."""
-    vertices, faces = [], []
     try:
         with open(path, "r", encoding="utf-8", errors="replace") as fh:
-            for number, line in enumerate(fh, 1):
-                if line.startswith("v "):
-                    vertices.append(_obj_numbers(line, float, f"{path}, line {number}"))
-                elif line.startswith("f "):
-                    faces.append(_obj_numbers(line, int, f"{path}, line {number}"))
+            lines = fh.read().split("\n")      # the lines of iterating the file (newlines unified)
     except OSError as exc:
         raise MeshError(f"cannot read {path}: {exc.strerror}") from exc
+    try:
+        mesh = _obj_in_bulk(lines, faces)
+    except (ValueError, OverflowError):        # a word that is no number, an id past int64
+        mesh = None
+    if mesh is None:                           # anything unusual: line by line, naming the line
+        mesh = _obj_line_by_line(path, lines, faces)
+    if len(mesh.loop_vertices) and not (0 <= mesh.loop_vertices.min()
+                                        and mesh.loop_vertices.max() < len(mesh.vertices)):
+        raise MeshError(f"{path}: a face refers to a vertex that does not exist")
+    return mesh
+
+
+# Longer lines go line by line: numpy's arrays of words are as wide as the longest line.
+_BULK_LINE_LENGTH = 200
+
+
+def _obj_in_bulk(lines, faces):
+    """read_obj's mesh with numpy converting all numbers at once (Python's float() and int()
+    rules, as line by line), or None if a line is malformed or unusual; face ids 0-based."""
+    vertex_words = _words_of(lines, "v")
+    face_words = _words_of(lines, "f") if faces else (np.zeros(0, object), np.zeros(0, np.int64))
+    if vertex_words is None or face_words is None:
+        return None
+    words, counts = vertex_words
+    if np.any(counts < 3):
+        return None
+    starts = np.cumsum(counts + 1) - counts - 1
+    vertices = words[starts[:, None] + np.arange(1, 4)].astype(np.float64).reshape(-1, 3)
+    words, totals = face_words
+    ids = np.array([word.partition("/")[0] for word in words[words != "f"]], dtype=object)
+    ids = ids.astype(np.int64) if len(ids) else np.zeros(0, np.int64)
+    # OBJ indices are 1-based; negatives count back from the end (out of range: read_obj says so)
+    loops = np.where(ids < 0, ids + len(vertices), ids - 1)
+    return PolyMesh(vertices, totals.astype(np.int64), loops)
+
+
+def _words_of(lines, kind):
+    """(every word of the lines that start with `kind` and a space, as one object array, the
+    line's own `kind` word included; each line's word count after it) or None if the lines are
+    too long or another word is `kind` too (the count would split a line in two)."""
+    chosen = [line for line in lines if line.startswith(kind + " ")]
+    if not chosen:
+        return np.zeros(0, object), np.zeros(0, np.int64)
+    if max(map(len, chosen)) > _BULK_LINE_LENGTH:
+        return None
+    words = np.array(" ".join(chosen).split(), dtype=object)
+    starts = np.flatnonzero(words == kind)
+    if len(starts) != len(chosen):
+        return None
+    return words, np.diff(np.append(starts, len(words))) - 1
+
+
+def _obj_line_by_line(path, lines, faces):
+    """read_obj's mesh read one line at a time: MeshError at the first malformed line."""
+    vertices, polygons = [], []
+    for number, line in enumerate(lines, 1):
+        if line.startswith("v "):
+            vertices.append(_obj_numbers(line, float, f"{path}, line {number}"))
+        elif faces and line.startswith("f "):
+            polygons.append(_obj_numbers(line, int, f"{path}, line {number}"))
     verts = np.array(vertices, dtype=np.float64).reshape(-1, 3)
     n = len(verts)
     fixed = []
-    for f in faces:
+    for f in polygons:
         # OBJ indices are 1-based; negatives count back from the end
         idx = [i + n if i < 0 else i - 1 for i in f]
         if any(i < 0 or i >= n for i in idx):
