@@ -176,3 +176,14 @@ def test_arkit_blendshapes_needs_both_halves(library):
     sub = library.subset(keep)
     names, deltas, missing = arkit_blendshapes(sub.names, sub.deltas)
     assert names == ["jawOpen"] and "browInnerUp" in missing and len(missing) == 51
+
+
+def test_obj_folder_reads_only_the_expressions_vertices(tmp_path):
+    # an expression's polygons are the neutral's: an exporter's vertices-only OBJ will do
+    neutral = read_obj(DATA / "demo_head.obj")
+    shutil.copy(DATA / "demo_head.obj", tmp_path / "neutral.obj")
+    moved = neutral.vertices + 0.01
+    (tmp_path / "up.obj").write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in moved)
+                                     + "f 1 2 99999\n")
+    lib = load_obj_folder(tmp_path)
+    np.testing.assert_array_equal(lib.deltas[0], moved - neutral.vertices)

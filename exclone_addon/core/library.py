@@ -126,7 +126,8 @@ def load_obj_folder(folder):
     n = len(neutral.vertices)
     deltas = np.empty((len(paths), n, 3))
     for i, path in enumerate(paths):
-        vertices = read_obj(path).vertices
+        # an expression's polygons are the neutral's: only its vertices are read
+        vertices = read_obj(path, faces=False).vertices
         if len(vertices) != n:
             raise ExCloneError(f"{path.name} has {len(vertices)} vertices but neutral.obj has {n}; "
                                "every expression OBJ must have the neutral's vertices in its order")
