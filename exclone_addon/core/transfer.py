@@ -82,6 +82,8 @@ class Transfer:
         self.grad, _ = deformation.gradient_operator(target_vertices, target_triangles, formulation)
         self.rest = deformation.unknowns_of(target_vertices, target_triangles, formulation)
         self.uncovered = np.asarray(weights) <= 0
+        self.uncovered_rows = np.repeat(self.uncovered, 3)          # their rows in G's layout
+        self.identity_blocks = np.tile(np.eye(3), (int(self.uncovered.sum()), 1))
         self.row_weight = np.where(self.uncovered, 1.0, weights)
         w_rows = sp.diags(np.repeat(self.row_weight, 3))
         normal = (self.grad.T @ w_rows @ self.grad).tocsc()
@@ -102,11 +104,15 @@ class Transfer:
         Returns target displacements (E, n, 3).
         """
         e = len(target_gradients)
-        wanted = np.array(target_gradients, dtype=np.float64)
-        wanted[:, self.uncovered] = np.eye(3)
-        stacked = deformation.stack_gradients(wanted)                           # (E, 3T, 3)
-        weights = np.repeat(self.row_weight, 3)[:, None]
-        residual = weights * (stacked - self.rest_gradients)
+        # in place on one stacked copy: at 100k triangles and 57 expressions each (E, 3T, 3)
+        # array is 400 MB, and allocating more of them cost more than the solve
+        given = np.asarray(target_gradients, dtype=np.float64)
+        residual = deformation.stack_gradients(given)
+        if np.may_share_memory(residual, given):     # a view (e.g. one triangle): never write
+            residual = residual.copy()               # into the caller's array
+        residual[:, self.uncovered_rows] = self.identity_blocks                # (E, 3T, 3)
+        residual -= self.rest_gradients
+        residual *= np.repeat(self.row_weight, 3)[:, None]
         rhs = self.grad.T @ residual.transpose(1, 0, 2).reshape(-1, e * 3)     # (N, 3E)
         solution = self.solve(rhs)
         d = solution.reshape(-1, e, 3).transpose(1, 0, 2)[:, : self.n]         # (E, n, 3)
