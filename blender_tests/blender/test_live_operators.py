@@ -543,7 +543,8 @@ def test_panel_section_offers_the_choices_and_the_status(ict):
     log = draw_panel()
     operators = [entry[1] for entry in log if entry[0] == "operator"]
     assert operators == ["exclone.drive_from_webcam", "exclone.calibrate_neutral",
-                         "exclone.refine_take", "exclone.calibrate_camera"]
+                         "exclone.refine_take", "exclone.import_take_csv",
+                         "exclone.export_take_csv", "exclone.calibrate_camera"]
     assert ("prop", "camera_index") in log and ("label", "Not running") in log
     assert ("label", "Preferences' webcam: 0") in log
 

@@ -82,7 +82,18 @@ def _draw_take(layout, webcam, path):
         row.operator("exclone.stop_webcam", text="Stop", icon='PAUSE')
     row.operator("exclone.calibrate_neutral", text="Calibrate", icon='USER')
     layout.operator("exclone.refine_take", icon='MODIFIER')
+    _draw_take_csv(layout, webcam, armature)
     layout.label(text=status_text(), icon='INFO')
+
+
+def _draw_take_csv(layout, webcam, armature):
+    """Import and Export Take CSV; an import drives the head rotation chosen above."""
+    row = layout.row(align=True)
+    importer = row.operator("exclone.import_take_csv", icon='IMPORT')
+    importer.head_target = webcam.head_target
+    importer.armature = armature.name if armature is not None else ""
+    importer.bone = webcam.head_bone
+    row.operator("exclone.export_take_csv", icon='EXPORT')
 
 
 def _draw_camera_calibration(layout, webcam):
