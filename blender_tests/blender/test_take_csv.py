@@ -99,6 +99,22 @@ def test_import_keys_every_arkit_key_from_the_playhead(tmp_path, capfd):
                                                                             abs=1e-6)
 
 
+def test_a_second_import_replaces_the_keys_at_its_frames_and_keeps_the_others(tmp_path):
+    obj = add_avatar()
+    set_fps(30)
+    first = write_csv(tmp_path / "first.csv", 30, 6, seed=4)
+    second = write_csv(tmp_path / "second.csv", 30, 4, seed=5)
+    bpy.context.scene.frame_current = 1
+    bpy.ops.exclone.import_take_csv(filepath=str(tmp_path / "first.csv"), frame_rate=30)
+    bpy.context.scene.frame_current = 4
+    bpy.ops.exclone.import_take_csv(filepath=str(tmp_path / "second.csv"), frame_rate=30)
+    points = key_curve(obj, "eyeBlink_L")
+    assert [frame for frame, _ in points] == list(range(1, 8))
+    np.testing.assert_allclose([value for _, value in points],
+                               np.concatenate([first.weights["eyeBlink_L"][:3],
+                                               second.weights["eyeBlink_L"]]), atol=1e-6)
+
+
 def test_import_at_another_scene_rate_resamples_the_take(tmp_path):
     obj = add_avatar()
     set_fps(24)

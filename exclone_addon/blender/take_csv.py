@@ -101,9 +101,14 @@ def _key_shapes(key, values, frames):
         block = key.key_blocks[name]
         curve = curves[f'key_blocks["{name}"].value']
         points = curve.keyframe_points
-        for frame, value in zip(frames, np.clip(series, block.slider_min, block.slider_max)):
-            points.insert(int(frame), float(value), options={'FAST'})
-        curve.update()
+        clipped = np.clip(series, block.slider_min, block.slider_max)
+        if len(points) == 1:        # a new F-curve: every point at once (a long take in seconds)
+            points.add(len(frames) - 1)
+            points.foreach_set("co", np.column_stack([frames, clipped]).ravel().astype(np.float32))
+        else:                       # keys of its own: the take's replace those at its frames
+            for frame, value in zip(frames, clipped):
+                points.insert(int(frame), float(value), options={'FAST'})
+        curve.update()              # sorted, handles recomputed
     return list(values)
 
 
