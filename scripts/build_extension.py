@@ -5,8 +5,9 @@
 
 Stages exclone_addon/ (without caches and tests) and blender_manifest.toml into the stage directory, adds
 the scipy and opencv-contrib-python-headless wheels pinned in requirements.txt (Python 3.11 = Blender 4.2
-to 5.0) and requirements-py313.txt (Python 3.13 = Blender 5.1+) for every requested platform, then runs
-the extension CLI that ships in the bpy wheel (validate, build --split-platforms, validate each zip).
+to 5.0) and requirements-py313.txt (Python 3.13 = Blender 5.1+) for every requested platform, plus the
+optional packages pinned below (cholespy, threadpoolctl) wherever a wheel exists, then runs the
+extension CLI that ships in the bpy wheel (validate, build --split-platforms, validate each zip).
 numpy is never bundled: Blender ships its own and a second copy breaks it. Wheels are cached in
 .cache/wheels (git-ignored), so a rebuild needs no network.
 """
@@ -20,7 +21,7 @@ import sys
 import tomllib
 from pathlib import Path
 
-from packaging.tags import cpython_tags
+from packaging.tags import compatible_tags, cpython_tags
 from packaging.utils import parse_wheel_filename
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -29,6 +30,12 @@ MANIFEST = ROOT / "blender_manifest.toml"
 WHEEL_CACHE = ROOT / ".cache" / "wheels"
 # Blender's own numpy is used; these are the compiled dependencies it does not ship.
 BUNDLED_PACKAGES = ("scipy", "opencv-contrib-python-headless")
+# Packages the add-on imports only if present, with what it does without them; bundled for every
+# platform and Python that has a wheel. threadpoolctl is pure Python: one wheel serves all.
+OPTIONAL_PACKAGES = {
+    "cholespy": ("2.2.0", "the transfer factorises with SciPy's SuperLU instead (slower on large meshes)"),
+    "threadpoolctl": ("3.8.0", "the add-on leaves the BLAS thread count as it finds it"),
+}
 # (python version, requirements file with its pins), oldest first: a stable-ABI wheel of an older
 # Python also serves the newer one.
 PYTHONS = (("3.11", ROOT / "requirements.txt"), ("3.13", ROOT / "requirements-py313.txt"))
@@ -50,6 +57,10 @@ PIP_NOISE = "is ignored: it is neither a file nor a directory"
 
 class BuildError(Exception):
     pass
+
+
+class NoWheelError(BuildError):
+    """The package index has no wheel of a requirement for that Python and platform."""
 
 
 def bpy_scripts_dir():
@@ -76,10 +87,13 @@ def read_pins(requirements):
 
 
 def wheel_serves_python(wheel_name, python):
-    """True when a stable-ABI (abi3) wheel built for an older CPython also runs on `python`."""
+    """True when a wheel chosen for an older CPython also runs on `python`: stable ABI (abi3) or
+    pure Python (py3-none-any)."""
     wheel_tags = parse_wheel_filename(wheel_name)[3]
-    python_tags = set(cpython_tags(tuple(map(int, python.split("."))), platforms=[t.platform for t in wheel_tags]))
-    return any(tag.abi == "abi3" and tag in python_tags for tag in wheel_tags)
+    version = tuple(map(int, python.split(".")))
+    platforms = [t.platform for t in wheel_tags]
+    python_tags = set(cpython_tags(version, platforms=platforms)) | set(compatible_tags(version, platforms=platforms))
+    return bool(wheel_tags & python_tags)
 
 
 def pip_download(requirements, python, platform):
@@ -91,7 +105,8 @@ def pip_download(requirements, python, platform):
     result = subprocess.run(command + requirements, capture_output=True, text=True)
     output = "\n".join(line for line in (result.stdout + result.stderr).splitlines() if PIP_NOISE not in line)
     if result.returncode != 0:
-        raise BuildError(f"pip could not download {' '.join(requirements)} for Python {python} on {platform}:\n"
+        failure = NoWheelError if "No matching distribution found" in output else BuildError
+        raise failure(f"pip could not download {' '.join(requirements)} for Python {python} on {platform}:\n"
                          f"{output}")
     saved = re.findall(r"(?:Saved|File was already downloaded) (\S+\.whl)", output)
     by_project = {Path(path).name.split("-")[0].lower().replace("_", "-"): Path(path).name for path in saved}
@@ -113,30 +128,48 @@ def collect_wheels(platforms):
     for platform in platforms:
         chosen = {}  # package -> wheel file name, for this platform
         for python, requirements_file in PYTHONS:
-            pins = read_pins(requirements_file)
+            pins = read_pins(requirements_file) | {name: pin for name, (pin, _) in OPTIONAL_PACKAGES.items()}
             wanted = []
-            for name in BUNDLED_PACKAGES:
+            for name in (*BUNDLED_PACKAGES, *OPTIONAL_PACKAGES):
                 if name in chosen and wheel_serves_python(chosen[name], python):
-                    # Blender keeps one wheel per project (the newest), so a second abi3 wheel
-                    # would only replace this one on every Python.
-                    print(f"  {platform}: {chosen[name]} (stable ABI) also serves Python {python}; "
+                    # Blender keeps one wheel per project (the newest), so a second wheel that
+                    # also runs on every Python would only replace this one.
+                    print(f"  {platform}: {chosen[name]} also serves Python {python}; "
                           f"not adding {name}=={pins[name]}")
                     continue
                 wanted.append(f"{name}=={pins[name]}")
-            missing = [r for r in wanted
-                       if not (WHEEL_CACHE / index.get(f"{r} {python} {platform}", "-")).is_file()]
-            if missing:
-                print(f"  downloading {' '.join(missing)} for Python {python}, {platform}")
-                for requirement, wheel in pip_download(missing, python, platform).items():
-                    index[f"{requirement} {python} {platform}"] = wheel
-                index_path.write_text(json.dumps(index, indent=1, sort_keys=True))
+            download_missing(wanted, python, platform, index)
+            index_path.write_text(json.dumps(index, indent=1, sort_keys=True))
             for requirement in wanted:
-                wheel = index[f"{requirement} {python} {platform}"]
-                chosen[requirement.split("==")[0]] = wheel
-                wheels.append(wheel)
+                wheel = index.get(f"{requirement} {python} {platform}")
+                if wheel is not None:    # None: an optional package without a wheel here
+                    chosen[requirement.split("==")[0]] = wheel
+                    wheels.append(wheel)
     if any(wheel.lower().startswith("numpy-") for wheel in wheels):
         raise BuildError("refusing to bundle numpy: Blender ships its own")
     return sorted(set(wheels))
+
+
+def download_missing(requirements, python, platform, index):
+    """Download the requirements not in the cache and record their wheels in `index`. The
+    required ones go in one pip call; each optional one alone, so that one without a wheel for
+    this Python and platform is reported and left out instead of failing the build."""
+    missing = [r for r in requirements if not (WHEEL_CACHE / index.get(f"{r} {python} {platform}", "-")).is_file()]
+    required = [r for r in missing if r.split("==")[0] not in OPTIONAL_PACKAGES]
+    batches = ([required] if required else []) + [[r] for r in missing if r not in required]
+    for batch in batches:
+        print(f"  downloading {' '.join(batch)} for Python {python}, {platform}")
+        try:
+            found = pip_download(batch, python, platform)
+        except NoWheelError:
+            name = batch[0].split("==")[0]
+            if name not in OPTIONAL_PACKAGES:
+                raise
+            print(f"  {platform}: no {batch[0]} wheel for Python {python}; without it "
+                  f"{OPTIONAL_PACKAGES[name][1]}")
+            continue
+        for requirement, wheel in found.items():
+            index[f"{requirement} {python} {platform}"] = wheel
 
 
 def staged_manifest_text(platforms, wheels):

@@ -7,7 +7,7 @@ import zipfile
 
 import pytest
 from blender_tests.helpers.paths import REPO_ROOT
-from packaging.tags import cpython_tags
+from packaging.tags import compatible_tags, cpython_tags
 from packaging.utils import parse_wheel_filename
 
 
@@ -44,7 +44,8 @@ def linux_zip(tmp_path_factory):
 
 def wheels_serving(wheels, project, python_version):
     """Wheels of `project` that pip would install on CPython `python_version` on Linux x86-64."""
-    compatible = set(cpython_tags(python_version, platforms=LINUX_PLATFORMS))
+    compatible = (set(cpython_tags(python_version, platforms=LINUX_PLATFORMS))
+                  | set(compatible_tags(python_version, platforms=LINUX_PLATFORMS)))
     found = []
     for wheel in wheels:
         name, _version, _build, tags = parse_wheel_filename(wheel)
@@ -53,14 +54,16 @@ def wheels_serving(wheels, project, python_version):
     return found
 
 
-def test_zip_bundles_scipy_and_opencv_for_both_pythons_but_never_numpy(linux_zip):
+def test_zip_bundles_scipy_opencv_and_cholespy_for_both_pythons_but_never_numpy(linux_zip):
     names = zipfile.ZipFile(linux_zip).namelist()
     wheels = [n.removeprefix("wheels/") for n in names if n.startswith("wheels/") and n.endswith(".whl")]
     assert not [w for w in wheels if parse_wheel_filename(w)[0] == "numpy"], wheels
     for python_version in ((3, 11), (3, 13)):
-        for project in ("scipy", "opencv-contrib-python-headless"):
+        for project in ("scipy", "opencv-contrib-python-headless", "cholespy", "threadpoolctl"):
             # Blender installs one wheel per project, so exactly one must fit each Python.
             assert len(wheels_serving(wheels, project, python_version)) == 1, (project, python_version, wheels)
+    # the pure-Python threadpoolctl wheel serves both Pythons: bundled once
+    assert len([w for w in wheels if parse_wheel_filename(w)[0] == "threadpoolctl"]) == 1, wheels
 
 
 def test_zip_has_face_models_and_no_caches(linux_zip):
@@ -97,5 +100,5 @@ def test_installed_extension_is_enabled_with_its_operators_and_wheels(linux_zip,
     python = f"python{sys.version_info[0]}.{sys.version_info[1]}"
     site_packages = user_resources / "extensions" / ".local" / "lib" / python / "site-packages"
     installed = {p.name for p in site_packages.iterdir()} if site_packages.is_dir() else set()
-    assert {"scipy", "cv2"} <= installed, installed
+    assert {"scipy", "cv2", "cholespy", "threadpoolctl.py"} <= installed, installed
     assert "numpy" not in installed

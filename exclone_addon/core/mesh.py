@@ -268,3 +268,6 @@ def check_mesh(vertices, triangles, what="mesh"):
     extent = np.ptp(vertices[np.unique(triangles)], axis=0)
     if np.sort(extent)[1] <= 1e-9 * extent.max():
         raise MeshError(f"{what} is degenerate: it has no extent in two directions")
+    if not 1e-30 < extent.max() < 1e30:     # squared areas (lengths^4) must stay finite
+        raise MeshError(f"{what} measures {extent.max():.3g} across, too large or too small to "
+                        "compute with; scale it to everyday units")
