@@ -17,7 +17,7 @@ from .reporting import failed, reporting
 from .properties import HEAD_TARGET_ITEMS, KEY_SET_ITEMS, WEBCAM_SOURCE_ITEMS
 
 
-def _poll_avatar(cls, context):
+def poll_avatar(cls, context):
     if context.mode != 'OBJECT':
         cls.poll_message_set("Switch to Object Mode first")
         return False
@@ -29,7 +29,7 @@ def _poll_avatar(cls, context):
     return True
 
 
-def _poll_no_take(cls):
+def poll_no_take(cls):
     if webcam_take.running is not None:
         cls.poll_message_set("A take is running: Esc or Stop ends it")
         return False
@@ -65,7 +65,7 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        return _poll_no_take(cls) and _poll_avatar(cls, context)
+        return poll_no_take(cls) and poll_avatar(cls, context)
 
     def _start(self, context):
         """The Take, or None after reporting why it could not start (nothing changed)."""
@@ -193,7 +193,7 @@ class EXCLONE_OT_refine_take(bpy.types.Operator):
 
     @classmethod
     def poll(cls, context):
-        if not _poll_no_take(cls):
+        if not poll_no_take(cls):
             return False
         take = webcam_take.last_take
         try:

@@ -17,7 +17,7 @@ from ..core.errors import ExCloneError, user_message
 from . import webcam_take
 from .avatar_rig import checked_avatar
 from .head_motion import HeadTarget, head_holder
-from .live_operators import _poll_avatar, _poll_no_take
+from .live_operators import poll_avatar, poll_no_take
 from .properties import HEAD_TARGET_ITEMS
 
 FRAME_RANGE_ITEMS = [
@@ -48,7 +48,7 @@ def listed(names):
 
 
 def _poll_arkit_avatar(cls, context):
-    if not (_poll_no_take(cls) and _poll_avatar(cls, context)):
+    if not (poll_no_take(cls) and poll_avatar(cls, context)):
         return False
     try:
         arkit_keys(context.active_object)
