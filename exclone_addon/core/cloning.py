@@ -21,6 +21,7 @@ from .mesh import checked_triangles, vertex_parts
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .surface import Surface
+from .threads import limited_threads
 from .transfer import Transfer
 
 CORRESPONDENCES = ("vertex", "triangle")
@@ -75,6 +76,7 @@ class FaceFit:
 
 # ------------------------------------------------------------------------------ fitting
 
+@limited_threads
 def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings=None,
               progress=None):
     """Landmarks, registration and correspondence of source onto target (PolyMesh each).
@@ -239,6 +241,7 @@ def _correspondence_quality(mapped, weights, scale, diagonal):
             "similarity_scale": scale, "target_diagonal": diagonal}
 
 
+@limited_threads
 def fit_registered(source, target, registered_source, *, settings=None):
     """A FaceFit from a registration made elsewhere (a known answer, or another tool's wrap of
     the source onto the target): correspondence only, no landmarks, no registration.
@@ -308,6 +311,7 @@ def _listed(names, mask, most=5):
     return ", ".join(chosen[:most]) + more
 
 
+@limited_threads
 def transfer_expressions(fit, source_deltas, names):
     """Every source expression onto the fitted target: CloneResult (timings and quality include
     the fit's). The transfer system is factorised once per fit and reused by later calls."""
@@ -374,6 +378,7 @@ def _wanted_gradients(fit, aligned_deltas, rest_at, moves_at):
     return wanted
 
 
+@limited_threads
 def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
                       source_landmarks=None, settings=None, progress=None):
     """Clone every source expression onto the target: fit_faces, then transfer_expressions.
