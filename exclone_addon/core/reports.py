@@ -18,3 +18,17 @@ def summary(added, replaced, skipped, seconds, quality):
     text = ", ".join(parts) + f" in {seconds:.1f} s"
     fit = fit_error(quality)
     return f"{text}, {fit}" if fit else text
+
+
+def measures_clause(summary):
+    """The expression measures in one short clause, e.g. "blink gap L 5% R 8%, stretch 3.4x,
+    11 flipped" from expression_measures.summary ("" if nothing was measured)."""
+    parts = []
+    gaps = [(side, summary.get(f"eyeBlink_{side}_gap")) for side in ("L", "R")]
+    gaps = [f"{side} {100 * gap:.0f}%" for side, gap in gaps if gap is not None]
+    if gaps:
+        parts.append("blink gap " + " ".join(gaps))
+    if summary.get("worst_edge_stretch") is not None:
+        parts.append(f"stretch {summary['worst_edge_stretch']:.1f}x")
+        parts.append(f"{summary['worst_flipped_triangles']} flipped")
+    return ", ".join(parts)

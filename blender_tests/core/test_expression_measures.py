@@ -1,0 +1,259 @@
+"""Expression measures (core.expression_measures): known answers on a flat face with eye holes,
+on the demo head (eyes modelled as sockets), on the bundled library's own mesh and on a real
+clone, and MakeHuman's own blink on its own topology."""
+from functools import lru_cache
+
+import numpy as np
+import pytest
+
+from exclone_addon.core import data, library, mesh
+from exclone_addon.core import expression_measures as em
+from exclone_addon.core.cloning import clone_expressions
+from exclone_addon.core.landmarks import automatic_landmarks
+from exclone_addon.core.orientation import face_frame
+from exclone_addon.core.reports import measures_clause
+from exclone_addon.core.surface import Surface
+
+STEP = 0.05
+
+
+# ------------------------------------------------------------------------------ a flat face
+
+def _grid_index(x, y):
+    """Vertex id of the grid point (x, y) on [-1, 1]^2 in steps of STEP."""
+    n = round(2 / STEP) + 1
+    return round((y + 1) / STEP) * n + round((x + 1) / STEP)
+
+
+def _in_eye(x, y):
+    """Inside one of the two rectangular eye holes: x in [0.2, 0.6] (mirrored), y in [0.3, 0.4]."""
+    return 0.2 < abs(x) < 0.6 and 0.3 < y < 0.4
+
+
+def flat_face(eye_holes=True):
+    """A flat face in the x-y plane looking along +z: a grid with two eye holes (open height
+    0.1, corners at (+-0.2, 0.35) and (+-0.6, 0.35)), the nose tip pushed forward at (0, 0),
+    and three vertices of a prop (outside the solved region) behind it. Returns (vertices, triangles, landmarks, prop
+    vertex ids)."""
+    n = round(2 / STEP) + 1
+    xs = np.linspace(-1, 1, n)
+    gx, gy = np.meshgrid(xs, xs)
+    vertices = np.column_stack([gx.ravel(), gy.ravel(), np.zeros(n * n)])
+    vertices[_grid_index(0, 0), 2] = 0.3
+    triangles = []
+    for j in range(n - 1):
+        for i in range(n - 1):
+            if eye_holes and _in_eye((xs[i] + xs[i + 1]) / 2, (xs[j] + xs[j + 1]) / 2):
+                continue
+            a, b, c, d = j * n + i, j * n + i + 1, (j + 1) * n + i + 1, (j + 1) * n + i
+            triangles += [(a, b, c), (a, c, d)]
+    prop = len(vertices) + np.arange(3)
+    vertices = np.vstack([vertices, [[2, 2, -1], [2.1, 2, -1], [2, 2.1, -1]]])
+    landmarks = {"nose_tip": (0, 0), "upper_lip": (0, -0.4), "lower_lip": (0, -0.5),
+                 "eye_inner_left": (0.2, 0.35), "eye_outer_left": (0.6, 0.35),
+                 "eye_inner_right": (-0.2, 0.35), "eye_outer_right": (-0.6, 0.35)}
+    return (vertices, np.array(triangles), {k: _grid_index(*p) for k, p in landmarks.items()},
+            prop)
+
+
+def measure_flat(deltas, names, eye_holes=True):
+    vertices, triangles, landmarks, prop = flat_face(eye_holes)
+    solved = np.setdiff1d(np.arange(len(vertices)), prop)
+    return em.measure_expressions(vertices, triangles, deltas, names, list(landmarks),
+                                  list(landmarks.values()), solved)
+
+
+def upper_lid_down(distance, side=1):
+    """Deltas moving one eye's upper border row (y = 0.4 over the hole) down by `distance`."""
+    vertices = flat_face()[0]
+    delta = np.zeros_like(vertices)
+    for x in np.arange(0.2, 0.6 + 1e-9, STEP):
+        delta[_grid_index(side * x, 0.4), 1] = -distance
+    return delta
+
+
+def test_upper_lid_moved_down_by_the_open_height_closes_the_gap_along_the_whole_lid():
+    found = measure_flat(np.stack([upper_lid_down(0.1), upper_lid_down(0.05),
+                                   upper_lid_down(0.1, side=-1)]), ["shut", "half", "right"])
+    assert found["shut"]["eyelid_gap_left_stations"] == pytest.approx([0.0] * 7, abs=1e-9)
+    assert found["half"]["eyelid_gap_left"] == pytest.approx(0.5)
+    assert found["half"]["eyelid_gap_left_stations"] == pytest.approx([0.5] * 7)
+    # the other eye stays open, and the closing one is on its own side
+    assert found["shut"]["eyelid_gap_right"] == pytest.approx(1.0)
+    assert found["right"]["eyelid_gap_right"] == pytest.approx(0.0, abs=1e-9)
+    assert found["right"]["eyelid_gap_left"] == pytest.approx(1.0)
+
+
+def test_a_lid_closed_only_in_its_middle_reads_open_at_its_ends():
+    delta = np.zeros_like(flat_face()[0])
+    for x in (0.35, 0.4, 0.45):            # the middle stations' neighbours only
+        delta[_grid_index(x, 0.4), 1] = -0.1
+    found = measure_flat(delta[None], ["middle"])["middle"]
+    stations = np.array(found["eyelid_gap_left_stations"])
+    assert stations[3] == pytest.approx(0.0, abs=1e-9)
+    assert stations[0] == pytest.approx(1.0) and found["eyelid_gap_left"] == pytest.approx(1.0)
+
+
+def test_edge_stretch_flips_and_motion_outside_have_known_answers():
+    vertices, _, _, prop = flat_face()
+    stretched = np.zeros_like(vertices)
+    stretched[:, 0] = 2 * vertices[:, 0]                   # x three times as long
+    stretched[prop] = 0.0
+    # every triangle turned over: mirrored in x and flattened (the nose's sides, steep in x,
+    # would keep normals within 90 degrees of their own under the mirror alone)
+    mirrored = vertices * [-1, 1, 0] - vertices
+    turned = np.tile([0.3, -0.2, 0.1], (len(vertices), 1))  # a shift: nothing stretched or flipped
+    prop_moved = np.zeros_like(vertices)
+    prop_moved[prop] = [0.0, 0.0, 0.1 * mesh.diagonal(vertices[:-3])]
+    found = measure_flat(np.stack([stretched, mirrored, turned, prop_moved]),
+                         ["stretched", "mirrored", "turned", "prop"])
+    triangles = flat_face()[1]
+    assert found["stretched"]["edge_stretch"] == pytest.approx(3.0)
+    assert found["stretched"]["flipped_triangles"] == 0
+    assert found["mirrored"]["flipped_triangles"] == len(triangles)
+    assert found["turned"]["flipped_triangles"] == 0
+    assert found["turned"]["edge_stretch"] == pytest.approx(1.0)
+    assert found["prop"]["motion_outside"] == pytest.approx(0.1)
+    assert found["stretched"]["motion_outside"] == 0.0
+
+
+def test_lip_gap_and_the_combined_jaw_open_and_mouth_close():
+    vertices, _, landmarks, _ = flat_face()
+    diagonal = mesh.diagonal(vertices[:-3])
+    jaw = np.zeros_like(vertices)
+    jaw[vertices[:, 1] <= -0.5, 1] = -0.05 * diagonal      # the lower lip and chin drop
+    close = -jaw
+    close[vertices[:, 1] <= -0.5, 2] = 0.01                # a push forward is no opening
+    found = measure_flat(np.stack([jaw, close]), ["jawOpen", "mouthClose"])
+    assert found["jawOpen"]["lip_gap"] == pytest.approx(0.05)
+    assert found[em.MEASURED_TOGETHER]["lip_gap"] == pytest.approx(0.0, abs=1e-12)
+    summary = em.summary(found)
+    assert summary["jawOpen_lip_gap"] == pytest.approx(0.05)
+    assert summary["jawOpen+mouthClose_lip_gap"] == pytest.approx(0.0, abs=1e-12)
+    assert summary["eyeBlink_L_gap"] is None            # no such expression: no figure
+
+
+def test_an_eye_without_a_hole_or_a_fold_is_none_with_a_reason():
+    found = measure_flat(upper_lid_down(0.1, side=1)[None], ["shut"], eye_holes=False)["shut"]
+    assert found["eyelid_gap_left"] is None and found["eyelid_gap_right"] is None
+    assert "no open border loop" in found["eyelid_gap_left_reason"]
+    assert found["lip_gap"] == 0.0                      # the lips are still measured
+
+
+def test_landmarks_placed_by_hand_give_no_lid_or_lip_figures():
+    vertices, triangles, landmarks, _ = flat_face()
+    found = em.measure_expressions(vertices, triangles, np.zeros((1,) + vertices.shape), ["x"],
+                                   [f"landmark_{k}" for k in range(len(landmarks))],
+                                   list(landmarks.values()), np.unique(triangles))["x"]
+    assert found["eyelid_gap_left"] is None and found["lip_gap"] is None
+    assert "no landmark" in found["lip_gap_reason"]
+    assert found["edge_stretch"] == 1.0 and found["flipped_triangles"] == 0
+
+
+# ------------------------------------------------------------------------------ real faces
+
+@lru_cache(maxsize=1)
+def demo_head_fit_inputs():
+    """(vertices, triangles, landmark names, landmark ids) of the demo head."""
+    vertices, triangles = mesh.checked_triangles(data.demo_head())
+    surface = Surface(vertices, triangles)
+    names, ids = automatic_landmarks(vertices, triangles,
+                                     face_frame(vertices, triangles, surface.search))
+    return vertices, triangles, names, ids
+
+
+def test_demo_head_lids_are_its_visible_lid_edges():
+    # hand-checked on the demo head (MakeHuman hm08, eyes modelled as sockets): at x = 0.31 the
+    # upper lid's front edge is vertex 2178 (y 7.332), the lower lid's 2221 (y 7.240); the
+    # vertices behind 2178 (4216, 3105: the lid's thickness) are not its edge
+    vertices, triangles, names, ids = demo_head_fit_inputs()
+    openings = em._Openings(vertices, triangles, dict(zip(names, ids)))
+    lids = openings.lids["eye_left"]
+    assert lids.how == "lid folds"
+    assert 2178 in lids.upper and 2221 in lids.lower
+    assert 4216 not in lids.upper and 3105 not in lids.upper
+    assert lids.rest[3] == pytest.approx(0.0843, abs=0.002)
+
+
+@pytest.mark.parametrize("fraction", [1.0, 0.5])
+def test_demo_head_upper_lid_moved_down_by_its_middle_open_height(fraction):
+    vertices, triangles, names, ids = demo_head_fit_inputs()
+    lids = em._Openings(vertices, triangles, dict(zip(names, ids))).lids["eye_left"]
+    opening = lids.opening
+    s, h = opening.station(vertices), opening.height(vertices)
+    upper_lid = (s > -0.2) & (s < 1.2) & (h > 0) & (h < opening.width)
+    delta = np.zeros_like(vertices)
+    delta[upper_lid] = -fraction * lids.rest[3] * opening.up
+    found = em.measure_expressions(vertices, triangles, delta[None], ["lid"], names, ids,
+                                   np.unique(triangles))["lid"]
+    stations = np.array(found["eyelid_gap_left_stations"])
+    assert stations[3] == pytest.approx(1 - fraction, abs=1e-3)
+    assert stations == pytest.approx(1 - fraction * lids.rest[3] / lids.rest, abs=1e-3)
+    assert found["eyelid_gap_right"] == pytest.approx(1.0)
+
+
+@lru_cache(maxsize=1)
+def library_measures():
+    lib = library.load_library().subset(["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthClose"])
+    vertices, triangles = mesh.checked_triangles(lib.mesh)
+    face = triangles[np.all(triangles < lib.parts["face"][1], axis=1)]
+    return em.measure_expressions(vertices, face, lib.deltas, lib.names,
+                                  *lib.automatic_landmarks, np.unique(face))
+
+
+def test_the_library_on_its_own_mesh_blinks_and_opens_its_mouth():
+    found = library_measures()
+    # ICT's face has eye holes, and lids with a thickness: the lids' visible edges meet
+    assert found["eyeBlink_L"]["eyelid_gap_left"] < 0.1
+    assert found["eyeBlink_L"]["eyelid_gap_right"] == pytest.approx(1.0, abs=0.01)
+    assert found["eyeBlink_R"]["eyelid_gap_right"] < 0.1
+    assert found["eyeBlink_R"]["eyelid_gap_left"] == pytest.approx(1.0, abs=0.01)
+    jaw = found["jawOpen"]["lip_gap"]
+    assert jaw > 0.03
+    assert abs(found[em.MEASURED_TOGETHER]["lip_gap"]) < 0.25 * jaw
+    for row in found.values():
+        assert np.isfinite(row["edge_stretch"]) and row["flipped_triangles"] >= 0
+
+
+def test_makehuman_blinks_on_its_own_topology(shared_data):
+    folder = shared_data / "makehuman-head"
+    neutral = mesh.read_obj(folder / "neutral.obj")
+    vertices, triangles = mesh.checked_triangles(neutral)
+    surface = Surface(vertices, triangles)
+    names, ids = automatic_landmarks(vertices, triangles,
+                                     face_frame(vertices, triangles, surface.search))
+    expressions = ["eye-left-closure", "eye-right-closure", "mouth-open"]
+    deltas = np.stack([mesh.read_obj(folder / f"{name}.obj").vertices - vertices
+                       for name in expressions])
+    found = em.measure_expressions(vertices, triangles, deltas, expressions, names, ids,
+                                   np.unique(triangles))
+    # MakeHuman's own blink closes the lids along the whole lid: the upper lid's edge ends a
+    # little below the lower one's at every station (-0.13 of the open height at the most open)
+    for name, side in (("eye-left-closure", "left"), ("eye-right-closure", "right")):
+        assert -0.3 < found[name][f"eyelid_gap_{side}"] < 0.0
+    assert found["eye-left-closure"]["eyelid_gap_right"] == pytest.approx(1.0, abs=1e-6)
+    assert found["eye-right-closure"]["eyelid_gap_left"] == pytest.approx(1.0, abs=1e-6)
+    assert found["mouth-open"]["lip_gap"] > 0.03
+
+
+def test_a_real_clone_onto_the_demo_head_is_measured():
+    lib = library.load_library().subset(["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthClose"])
+    head = data.demo_head()
+    result = clone_expressions(lib.mesh, lib.deltas, lib.names, head,
+                               source_landmarks=lib.automatic_landmarks)
+    found = em.measure_clone(head, result)
+    assert set(found) == set(lib.names) | {em.MEASURED_TOGETHER}
+    for row in found.values():
+        for key in ("eyelid_gap_left", "eyelid_gap_right", "lip_gap", "edge_stretch",
+                    "motion_outside"):
+            assert np.isfinite(row[key]), key
+    # what the current engine demonstrably does: the blink stays on its own side
+    assert found["eyeBlink_L"]["eyelid_gap_right"] == pytest.approx(1.0, abs=0.1)
+    assert found["eyeBlink_R"]["eyelid_gap_left"] == pytest.approx(1.0, abs=0.1)
+    assert found["eyeBlink_L"]["eyelid_gap_left"] < 0.9       # and it does close somewhat
+    assert found["jawOpen"]["lip_gap"] > 0.01
+    summary = em.summary(found)
+    assert summary["eyeBlink_L_gap"] == found["eyeBlink_L"]["eyelid_gap_left"]
+    assert summary["worst_edge_stretch"] == max(row["edge_stretch"] for row in found.values())
+    clause = measures_clause(summary)
+    assert clause.startswith("blink gap L ") and "stretch" in clause and "flipped" in clause

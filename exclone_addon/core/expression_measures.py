@@ -1,0 +1,349 @@
+"""Measures of cloned expressions on the target: do they read right on this face?
+(docs/method.md §13).
+
+Per expression: how far each eye's lids still stand apart (a fraction of the open height, along
+the whole lid), how far the lips stand apart (a fraction of the face's diagonal), the worst edge
+stretch, the triangles turned over, and how far anything outside the solved region moved.
+
+Lids and lips are found on the rest target from its named landmarks (eye and mouth corners) and
+its surface, as two rows of margin vertices, upper and lower:
+- an opening with a hole: the open border loop around the corners, split into the half above
+  and the half below the line through its own ends (its corners);
+- an opening without a hole (a socket or a closed mouth modelled as a pocket): the fronts of the
+  folds where the skin turns back into the opening (a vertex with an edge running straight back
+  from it and none running straight forward), above and below the corners' line.
+Where neither is found the measure is None with the reason. The margins are followed by vertex
+id through every expression, so a lid that slides down reads as its vertices do.
+"""
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+from . import mesh
+from .surface import Surface
+
+# Stations along the eye opening from the inner to the outer corner, as fractions of the
+# corners' distance: the whole lid, not only its middle; the corners themselves are left out
+# (the gap closes there on any face).
+EYE_STATIONS = np.linspace(0.2, 0.8, 7)
+# An edge runs straight back (into an opening) when it is within ~35 degrees of the view axis.
+FOLD_COS = 0.8
+# The front of a lid: no margin vertex within FRONT_WINDOW stations stands FRONT_DEPTH x the
+# eye's width in front of it.
+FRONT_WINDOW = 0.15
+FRONT_DEPTH = 0.1
+# A lid's visible edge is the one nearest the opening among its margin candidates within this
+# many stations.
+EDGE_WINDOW = 0.05
+# The lids are looked for within this far of the corners' line, x the corners' distance.
+EYE_REACH = 0.35
+# A margin border loop must reach this close to the corners' middle, x the corners' distance.
+LOOP_REACH = 0.5
+
+EYES = ("left", "right")
+COMBINED = ("jawOpen", "mouthClose")      # measured together: the lips should meet again
+MEASURED_TOGETHER = "+".join(COMBINED)
+
+
+class _Frame:
+    """The face's axes from its landmarks: up (eyes above the lips), forward (to the nose tip),
+    each a unit vector in the mesh's coordinates."""
+
+    def __init__(self, points):
+        eyes = np.mean([points[f"eye_{end}_{side}"] for end in ("inner", "outer") for side in EYES],
+                       axis=0)
+        lips = (points["upper_lip"] + points["lower_lip"]) / 2
+        across = points["eye_outer_left"] - points["eye_outer_right"]
+        across = across / np.linalg.norm(across)
+        up = eyes - lips
+        up = up - (up @ across) * across
+        self.up = up / np.linalg.norm(up)
+        forward = np.cross(across, self.up)
+        self.forward = forward if forward @ (points["nose_tip"] - eyes) >= 0 else -forward
+
+
+class _Opening:
+    """Two corners of an opening (an eye) in the face frame: a point's station s (0 at the
+    first corner, 1 at the second, along the face's across axis) and its height h above the
+    corners' line (along the face's up); moving a point up or down changes only its height."""
+
+    def __init__(self, first, second, frame):
+        self.first, self.forward, self.up = first, frame.forward, frame.up
+        along = second - first
+        self.rise = float(along @ frame.up)
+        along = along - (along @ frame.forward) * frame.forward - self.rise * frame.up
+        self.width = float(np.linalg.norm(along))
+        self.along = along / self.width
+
+    def station(self, points):
+        return (points - self.first) @ self.along / self.width
+
+    def height(self, points):
+        return (points - self.first) @ self.up - self.station(points) * self.rise
+
+
+def _border_loops(triangles, n_vertices):
+    """[ids of each open border loop's vertices]."""
+    edges = mesh.boundary_edges(triangles)
+    if not len(edges):
+        return []
+    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
+                          shape=(n_vertices, n_vertices))
+    _, labels = connected_components(graph, directed=False)
+    on_border = np.unique(edges)
+    return [on_border[labels[on_border] == label] for label in np.unique(labels[on_border])]
+
+
+def _split_at_corners(ids, opening, vertices):
+    """(upper ids, lower ids) of a loop around an opening: above or below the line through the
+    loop's two vertices nearest the opening's corners."""
+    s, h = opening.station(vertices[ids]), opening.height(vertices[ids])
+    ends = [np.argmin(np.hypot(s - end, h / opening.width)) for end in (0.0, 1.0)]
+    line = np.interp(s, s[ends], h[ends])
+    return ids[h > line], ids[h < line]
+
+
+def _loop_margin(vertices, triangles, opening):
+    """(upper ids, lower ids) of the open border loop around the opening, or None."""
+    middle = opening.first + 0.5 * opening.width * opening.along
+    for loop in _border_loops(triangles, len(vertices)):
+        reach = np.linalg.norm(vertices[loop] - middle, axis=1).min()
+        if reach < LOOP_REACH * opening.width and np.ptp(opening.station(vertices[loop])) > 0.6:
+            return _split_at_corners(loop, opening, vertices)
+    return None
+
+
+def _fold_margin(vertices, triangles, opening):
+    """(upper ids, lower ids) of the fronts of the folds where the skin turns back into the
+    opening (within EYE_REACH x width of the corners' line, between the corners), or None."""
+    edges = np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+    vectors = vertices[edges[:, 1]] - vertices[edges[:, 0]]
+    cos = vectors @ opening.forward / np.maximum(np.linalg.norm(vectors, axis=1), 1e-300)
+    back = np.zeros(len(vertices), dtype=bool)     # a vertex with an edge straight back from it
+    ahead = np.zeros(len(vertices), dtype=bool)    # ... with an edge straight forward from it
+    back[edges[cos > FOLD_COS, 1]] = ahead[edges[cos > FOLD_COS, 0]] = True
+    back[edges[cos < -FOLD_COS, 0]] = ahead[edges[cos < -FOLD_COS, 1]] = True
+    s, h = opening.station(vertices), opening.height(vertices)
+    inside = (s > 0.05) & (s < 0.95) & (np.abs(h) < EYE_REACH * opening.width)
+    fronts = np.flatnonzero(back & ~ahead & inside)
+    upper, lower = fronts[h[fronts] > 0], fronts[h[fronts] < 0]
+    return (upper, lower) if len(upper) >= 2 and len(lower) >= 2 else None
+
+
+def _margin(vertices, triangles, opening):
+    """(upper ids, lower ids, how they were found) of the candidates for an eye's lid margins
+    (the border loop around the opening and the fronts of the folds into it), or
+    (None, None, why there are none)."""
+    found = [(name, rows) for name, rows in
+             (("border loop", _loop_margin(vertices, triangles, opening)),
+              ("lid folds", _fold_margin(vertices, triangles, opening))) if rows is not None]
+    if not found:
+        return None, None, "no open border loop around the eye and no fold into an opening " \
+            "between its corners"
+    upper, lower = (np.unique(np.concatenate([rows[k] for _, rows in found])) for k in (0, 1))
+    if min(len(upper), len(lower)) < 2:
+        return None, None, "too few lid margin vertices between the eye's corners"
+    return upper, lower, " and ".join(name for name, _ in found)
+
+
+def _front_row(ids, opening, vertices):
+    """The margin vertices `ids` at the front of the lid: none stands straight in front of them
+    (within 0.05 x the eye's width of the view axis: the back of a lid modelled with a
+    thickness), and none within FRONT_WINDOW stations stands more than FRONT_DEPTH x the width
+    in front of them (the socket behind the lids, a hole's border behind a thick lid)."""
+    points = vertices[ids]
+    offsets = points[None, :, :] - points[:, None, :]              # (k, k, 3): k -> each other
+    ahead = offsets @ opening.forward
+    lateral = np.linalg.norm(offsets - ahead[..., None] * opening.forward, axis=2)
+    s = opening.station(points)
+    near = np.abs(s[None, :] - s[:, None]) <= FRONT_WINDOW
+    hidden = ((ahead > 0) & (lateral < 0.05 * opening.width)).any(axis=1) \
+        | (near & (ahead > FRONT_DEPTH * opening.width)).any(axis=1)
+    return ids[~hidden]
+
+
+def _visible_edge(ids, opening, vertices, sign):
+    """The margin vertices `ids` on the opening's side of their neighbours within EDGE_WINDOW
+    stations (sign +1 for the upper lid: the lowest; -1 for the lower lid: the highest): where
+    the lid occludes the opening from, not the lid's underside or a crease above it."""
+    s, h = opening.station(vertices[ids]), sign * opening.height(vertices[ids])
+    tolerance = 0.02 * opening.width
+    edge = [np.all(h[np.abs(s - s[k]) <= EDGE_WINDOW] >= h[k] - tolerance) for k in range(len(ids))]
+    return ids[np.array(edge, dtype=bool)]
+
+
+def _row_heights(opening, points, stations):
+    """(S,) the height of a row of margin points at each station (linear between them)."""
+    s = opening.station(points)
+    order = np.argsort(s)
+    return np.interp(stations, s[order], opening.height(points)[order])
+
+
+class _Lids:
+    """An eye's upper and lower lid margins, one vertex of each per station, and the gap
+    between them at rest."""
+
+    def __init__(self, vertices, triangles, inner, outer, frame):
+        self.opening = _Opening(inner, outer, frame)
+        upper, lower, self.how = _margin(vertices, triangles, self.opening)
+        self.rest = None
+        if upper is not None:
+            self.upper, self.lower = (
+                _visible_edge(_front_row(row, self.opening, vertices), self.opening, vertices, sign)
+                for row, sign in ((upper, 1), (lower, -1)))
+            self.rest = self.gaps(vertices)
+
+    def gaps(self, positions):
+        """(S,) height of the upper lid above the lower one at each station (the rest frame's up)."""
+        return (_row_heights(self.opening, positions[self.upper], EYE_STATIONS)
+                - _row_heights(self.opening, positions[self.lower], EYE_STATIONS))
+
+
+class _Openings:
+    """The lids of both eyes on the rest target (or why each is missing) and the face's up."""
+
+    EYE_NAMES = ("eye_inner_{}", "eye_outer_{}")
+    NEEDED = tuple(name.format(side) for name in EYE_NAMES for side in EYES) \
+        + ("upper_lip", "lower_lip", "nose_tip")
+
+    def __init__(self, vertices, triangles, landmarks):
+        """landmarks: {name: target vertex id}."""
+        self.lids, self.reasons, self.lips = {}, {}, None
+        points = {name: vertices[i] for name, i in landmarks.items()}
+        missing = [name for name in self.NEEDED if name not in points]
+        if missing:
+            reason = "no landmark " + ", ".join(missing) + " (only automatic landmarks are named)"
+            self.reasons = {key: reason for key in ("eye_left", "eye_right", "mouth")}
+            return
+        frame = _Frame(points)
+        self.up, self.lips = frame.up, (landmarks["upper_lip"], landmarks["lower_lip"])
+        self.rest_lips = self._lips_apart(vertices)
+        for side in EYES:
+            lids = _Lids(vertices, triangles, *(points[name.format(side)] for name in self.EYE_NAMES),
+                         frame)
+            if lids.rest is None:
+                self.reasons[f"eye_{side}"] = lids.how
+            elif np.any(lids.rest <= 0):
+                self.reasons[f"eye_{side}"] = "the eye is closed at rest (no open height)"
+            else:
+                self.lids[f"eye_{side}"] = lids
+
+    def _lips_apart(self, positions):
+        upper, lower = self.lips
+        return float((positions[upper] - positions[lower]) @ self.up)
+
+    def lip_opening(self, positions):
+        """How much further apart the lips stand than at rest, along the face's up: the upper
+        and lower lip landmarks (the lips' front-most points on the midline) move with the lips
+        however the mouth is modelled (a slit, a pocket, lips merged at rest)."""
+        return self._lips_apart(positions) - self.rest_lips
+
+
+# ------------------------------------------------------------------------------ measures
+
+def measure_expressions(vertices, triangles, deltas, names, landmark_names, landmark_ids,
+                        solved_vertices):
+    """Measures of every expression on the target: {name: measures}, plus one entry
+    "jawOpen+mouthClose" (the two deltas summed) where both are given.
+
+    vertices (n, 3) the rest target; triangles (T, 3) the solved region's triangles (the skin
+    the landmarks are on); deltas (E, n, 3); landmark_names/ids: the fit's target landmarks;
+    solved_vertices: ids the transfer solved (the rest only follow). Each measures dict holds:
+    eyelid_gap_left/right (max over the lid's stations of the gap / the gap at rest; 0 closed,
+    1 as at rest, < 0 the lids overlap) and their per-station lists, lip_gap (max over the
+    mouth's stations of the gap / the diagonal), edge_stretch (max deformed / rest edge length),
+    flipped_triangles (normals turned by more than 90 degrees), motion_outside (max displacement
+    outside the solved region / the diagonal), and "<measure>_reason" wherever one is None.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    deltas = np.asarray(deltas, dtype=np.float64).reshape(-1, len(vertices), 3)
+    names = [str(name) for name in names]
+    if all(name in names for name in COMBINED):
+        deltas = np.concatenate([deltas, sum(deltas[names.index(n)] for n in COMBINED)[None]])
+        names = names + [MEASURED_TOGETHER]
+    openings = _Openings(vertices, triangles, {str(name): int(i) for name, i
+                                               in zip(landmark_names, landmark_ids)})
+    shape = _Shape(vertices, triangles, solved_vertices)
+    return {name: {**_opening_measures(openings, vertices + delta, shape.diagonal),
+                   **shape.measures(delta)}
+            for name, delta in zip(names, deltas)}
+
+
+def _opening_measures(openings, positions, diagonal):
+    """The eyelid gaps (fractions of the rest gap) and the lip gap (fraction of the diagonal)."""
+    found = {}
+    for side in EYES:
+        lids, key = openings.lids.get(f"eye_{side}"), f"eyelid_gap_{side}"
+        if lids is None:
+            found[key], found[f"{key}_reason"] = None, openings.reasons[f"eye_{side}"]
+            continue
+        fractions = lids.gaps(positions) / lids.rest
+        found[key], found[f"{key}_stations"] = float(fractions.max()), fractions.round(4).tolist()
+    if openings.lips is None:
+        found["lip_gap"], found["lip_gap_reason"] = None, openings.reasons["mouth"]
+    else:
+        found["lip_gap"] = float(openings.lip_opening(positions) / diagonal)
+    return found
+
+
+class _Shape:
+    """What an expression does to the solved region's shape and to the rest of the mesh."""
+
+    def __init__(self, vertices, triangles, solved_vertices):
+        self.vertices, self.triangles = vertices, triangles
+        self.edges = np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1),
+                               axis=0)
+        self.rest_lengths = self._lengths(vertices)
+        self.rest_normals = mesh.triangle_normals(vertices, triangles)
+        outside = np.ones(len(vertices), dtype=bool)
+        outside[np.asarray(solved_vertices, dtype=np.int64)] = False
+        self.outside = np.flatnonzero(outside)
+        self.diagonal = mesh.diagonal(vertices, np.unique(triangles))
+
+    def _lengths(self, positions):
+        return np.linalg.norm(positions[self.edges[:, 1]] - positions[self.edges[:, 0]], axis=1)
+
+    def measures(self, delta):
+        moved = self.vertices + delta
+        usable = self.rest_lengths > 0
+        stretch = self._lengths(moved)[usable] / self.rest_lengths[usable]
+        normals = mesh.triangle_normals(moved, self.triangles)
+        flipped = np.einsum("ij,ij->i", normals, self.rest_normals) < 0
+        outside = np.linalg.norm(delta[self.outside], axis=1).max(initial=0.0)
+        return {"edge_stretch": float(stretch.max(initial=1.0)),
+                "flipped_triangles": int(flipped.sum()),
+                "motion_outside": float(outside / self.diagonal)}
+
+
+def measure_clone(target, result):
+    """measure_expressions of a CloneResult on its target PolyMesh: the solved region is the
+    target's parts that hold its landmarks (all of it without landmarks), as in the fit."""
+    vertices, triangles = mesh.checked_triangles(target, "target mesh")
+    surface = Surface(vertices, triangles)
+    region = surface.parts_holding(result.target_landmarks) if len(result.target_landmarks) \
+        else surface
+    return measure_expressions(vertices, region.triangles, result.deltas, result.names,
+                               result.landmark_names, result.target_landmarks, region.used)
+
+
+BLINKS = {"eyeBlink_L": ("left", "right"), "eyeBlink_R": ("right", "left")}   # closes, stays open
+
+
+def summary(measures):
+    """The figures a user reads first, from measure_expressions' result: for each blink the
+    closing eye's and the other eye's gap, the lip gap at jawOpen and jawOpen+mouthClose, and
+    the worst edge stretch, flipped-triangle count and motion outside with their expressions.
+    A figure that cannot be had (no such expression, no lids found) is None."""
+    found = {}
+    for name, (closing, other) in BLINKS.items():
+        row = measures.get(name, {})
+        found[f"{name}_gap"] = row.get(f"eyelid_gap_{closing}")
+        found[f"{name}_other_eye_gap"] = row.get(f"eyelid_gap_{other}")
+    for name in ("jawOpen", MEASURED_TOGETHER):
+        found[f"{name}_lip_gap"] = measures.get(name, {}).get("lip_gap")
+    for key in ("edge_stretch", "flipped_triangles", "motion_outside"):
+        worst = max(measures, key=lambda name: measures[name][key], default=None)
+        found[f"worst_{key}"] = None if worst is None else measures[worst][key]
+        found[f"worst_{key}_expression"] = worst
+    return found
