@@ -14,7 +14,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from ..core.errors import ExCloneError
 from ..core.library import arkit_blendshapes
 from ..core.mesh import PolyMesh
-from ..core.reports import summary
+from ..core.reports import measures_clause, summary
 from . import landmarks as stored_landmarks
 from . import mesh_io, workflow
 from .reporting import failed, reporting
@@ -212,8 +212,11 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
             added, replaced, also_skipped = mesh_io.write_shape_keys(
                 target, [key_names[name] for name in wanted], deltas,
                 replace_existing=self.replace_existing)
+            measured = measures_clause(workflow.measure(target.name, target_mesh, result,
+                                                        wanted, deltas))
             self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
                                           time.perf_counter() - started, result.quality)
+                        + (f"; {measured}" if measured else "")
                         + (" (registration reused)" if run.cached else ""))
             return {'FINISHED'}
 

@@ -33,6 +33,7 @@ def draw(layout, context):
     target = _draw_source_and_target(layout, context, settings)
     _draw_landmarks(layout, target)
     _draw_engine_buttons(layout, settings)
+    _draw_measures(layout)
     _draw_expressions(layout, settings)
     _draw_options(layout, settings)
 
@@ -88,6 +89,30 @@ def _draw_engine_buttons(layout, settings):
     arkit = column.operator("exclone.generate_arkit_shapes", icon='USER')
     arkit.replace_existing = settings.replace_existing
     _engine_options(arkit, settings)
+
+
+def _percent(value, digits=0):
+    return "-" if value is None else f"{100 * value:.{digits}f}%"
+
+
+def _draw_measures(layout):
+    """The last Clone's measures, compact: each blink's lid gap (the other eye's beside it), the
+    lips at jawOpen (and with mouthClose), the worst stretch and flips."""
+    measured = workflow.last_measures
+    if not measured:
+        return
+    found = measured["summary"]
+    column = layout.box().column(align=True)
+    column.label(text=f"Last clone: {measured['target']}", icon='INFO')
+    for name in ("eyeBlink_L", "eyeBlink_R"):
+        column.label(text=f"{name}: lids {_percent(found[f'{name}_gap'])} open, "
+                          f"other {_percent(found[f'{name}_other_eye_gap'])}")
+    jaw, closed = found["jawOpen_lip_gap"], found["jawOpen+mouthClose_lip_gap"]
+    column.label(text=f"jawOpen: lips {_percent(jaw, 1)} of the face apart")
+    column.label(text=f"with mouthClose: {_percent(closed, 1)}")
+    if found["worst_edge_stretch"] is not None:
+        column.label(text=f"stretch {found['worst_edge_stretch']:.1f}x, "
+                          f"{found['worst_flipped_triangles']} flipped")
 
 
 def _draw_expressions(layout, settings):

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..core.cloning import CloneSettings, fit_faces, transfer_expressions
 from ..core.errors import Cancelled, ExCloneError
+from ..core.expression_measures import measure_clone, summary
 from ..core import data
 from ..core.landmarks import checked_pairs
 from ..core.library import ExpressionLibrary, load_library
@@ -236,6 +237,20 @@ def still_parts_mask(target_mesh, target_landmarks):
     """Vertices of the parts without landmarks (they keep their shape with parts='STILL')."""
     parts = vertex_parts(len(target_mesh.vertices), target_mesh.triangles())
     return ~np.isin(parts, parts[np.asarray(target_landmarks)])
+
+
+# The last Clone's expression measures, for the panel: {"target": object name, "summary":
+# core.expression_measures.summary}; empty before the first Clone of the session.
+last_measures = {}
+
+
+def measure(target_name, target_mesh, result, names, deltas):
+    """The expression measures of the shape keys a Clone wrote (names, deltas), kept as the
+    last run's for the panel; returns their summary."""
+    found = summary(measure_clone(target_mesh, result, names, deltas))
+    last_measures.clear()
+    last_measures.update(target=target_name, summary=found)
+    return found
 
 
 def fit_text(result):

@@ -316,14 +316,17 @@ class _Shape:
                 "motion_outside": float(outside / self.diagonal)}
 
 
-def measure_clone(target, result):
+def measure_clone(target, result, names=None, deltas=None):
     """measure_expressions of a CloneResult on its target PolyMesh: the solved region is the
-    target's parts that hold its landmarks (all of it without landmarks), as in the fit."""
+    target's parts that hold its landmarks (all of it without landmarks), as in the fit.
+    names, deltas: the expressions as written, if not the result's (a subset, or with parts
+    kept still)."""
     vertices, triangles = mesh.checked_triangles(target, "target mesh")
     surface = Surface(vertices, triangles)
     region = surface.parts_holding(result.target_landmarks) if len(result.target_landmarks) \
         else surface
-    return measure_expressions(vertices, region.triangles, result.deltas, result.names,
+    names, deltas = (result.names, result.deltas) if names is None else (names, deltas)
+    return measure_expressions(vertices, region.triangles, deltas, names,
                                result.landmark_names, result.target_landmarks, region.used)
 
 
