@@ -13,6 +13,13 @@ into another. Cases:
 - head: the full ICT head (26,719 vertices, all parts) onto the demo head;
 - face_dense_target: the face region onto the demo head subdivided once (midpoint subdivision,
   same shape, about 4x the vertices): a third size point, for memory against target size;
+- cli_obj_folder: the command line (scripts/batch_clone.py --no-preview) from process start to
+  .blend written, on an 11-OBJ source folder (the face region's neutral and its first 10
+  expressions, written with core.mesh.write_obj) onto a 7,000-vertex target (the demo head with
+  its 2,756 front-most triangles split at their centroids: `densified`; a midpoint subdivision
+  would give 4x the vertices, Catmull-Clark needs Blender's modifier); and the same folder read
+  by the line-by-line OBJ reader (mesh._obj_line_by_line, what read_obj was before the bulk
+  reader; faces of every file) and by core.library.load_obj_folder, side by side;
 - compare: with ONE set of automatic landmarks (the engine's own, from a first clone) and the same
   schedule, the reduced vs the augmented formulation, and trimesh.registration.nricp_sumner on
   the same source region, target region and landmarks; all errors by one metric (below).
@@ -34,7 +41,7 @@ CloneResult.quality["registration_mean_distance_rel"] and the quality bars are m
 targets are judged on the overlap; all three are reported.
 
 --quick: only the face case and the reduced/augmented comparison (no trimesh, no full head,
-no dense target). Targets are reported as booleans, never asserted.
+no dense target, no command line). Targets are reported as booleans, never asserted.
 """
 import argparse
 import gc
@@ -55,15 +62,20 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 from exclone_addon.core import data  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
-from exclone_addon.core.library import load_library  # noqa: E402
+from exclone_addon.core import mesh as mesh_module  # noqa: E402
+from exclone_addon.core.library import load_library, load_obj_folder  # noqa: E402
 from exclone_addon.core.mesh import (PolyMesh, diagonal, read_obj,  # noqa: E402
-                                     valid_triangles, vertex_parts)
+                                     valid_triangles, vertex_parts, write_obj)
 from exclone_addon.core.registration import (PRESETS, Schedule,  # noqa: E402
                                              closest_valid_points, similarity_transform)
+from exclone_addon.core.expression_measures import measure_clone, summary  # noqa: E402
 from exclone_addon.core.surface import Surface  # noqa: E402
 
 DEMO_HEAD = data.DEMO_HEAD_FILE
 FACE_VERTICES = 9409           # ICT-FaceKit's "face" part is vertices [0, 9409)
+CLI = ROOT / "scripts" / "batch_clone.py"
+CLI_EXPRESSIONS = 10           # the OBJ folder: neutral + this many expressions
+CLI_TARGET_VERTICES = 7000
 PHASES = ("landmarks", "registration", "correspondence", "transfer")
 MIB = 1024.0 * 1024.0
 # trimesh's own default schedule of nricp_sumner, rows (wc, wi, ws, wl, wn); written out so the
@@ -100,6 +112,22 @@ def subdivided(mesh):
     import trimesh.remesh
     vertices, faces = trimesh.remesh.subdivide(mesh.vertices, mesh.triangles())
     return PolyMesh.from_faces(vertices, faces)
+
+
+def densified(mesh, n_vertices):
+    """The mesh's triangles, the ones whose centroids lie furthest along +Z (the face's front)
+    split at their centroids until it has n_vertices (at most one split per triangle): the
+    same surface and borders, a denser face, as a production head has."""
+    triangles = mesh.triangles()
+    count = min(max(n_vertices - len(mesh.vertices), 0), len(triangles))
+    centroids = mesh.vertices[triangles].mean(axis=1)
+    split = np.argsort(-centroids[:, 2], kind="stable")[:count]
+    centre = len(mesh.vertices) + np.arange(count)
+    a, b, c = triangles[split].T
+    fans = np.concatenate([np.stack(corners, axis=1)
+                           for corners in ((a, b, centre), (b, c, centre), (c, a, centre))])
+    return PolyMesh.from_faces(np.vstack([mesh.vertices, centroids[split]]),
+                               np.vstack([np.delete(triangles, split, axis=0), fans]))
 
 
 def case_inputs(name):
@@ -220,7 +248,72 @@ def run_case(name):
         "correspondence_coverage": quality["correspondence_coverage"],
         "same_output_cold_warm_traced": bool(np.array_equal(cold.deltas, warm.deltas)
                                              and np.array_equal(cold.deltas, traced.deltas)),
+        # how the clone reads on the target: lid and lip gaps, stretch, flips, motion outside
+        "expression_measures": summary(measure_clone(target, cold)),
     }
+
+
+def write_cli_inputs(folder):
+    """The cli_obj_folder case's source folder (neutral.obj + expression OBJs) and target OBJ."""
+    library = load_library()
+    region, deltas = face_region(library)
+    source = folder / "source"
+    source.mkdir()
+    write_obj(source / "neutral.obj", region)
+    for name, delta in zip(library.names[:CLI_EXPRESSIONS], deltas):
+        write_obj(source / f"{name}.obj", PolyMesh(region.vertices + delta, region.loop_totals,
+                                                   region.loop_vertices))
+    target = folder / "target.obj"
+    write_obj(target, densified(read_obj(DEMO_HEAD), CLI_TARGET_VERTICES))
+    return source, target
+
+
+def folder_read_seconds(source):
+    """Seconds to read the OBJ folder: every file line by line (faces too, as the reader was
+    before), and by load_obj_folder (bulk reader, the expressions' vertices only)."""
+    paths = sorted(source.glob("*.obj"))
+    start = time.perf_counter()
+    for path in paths:
+        lines = path.read_text(encoding="utf-8", errors="replace").split("\n")
+        mesh_module._obj_line_by_line(path, lines, True)
+    line_by_line = time.perf_counter() - start
+    start = time.perf_counter()
+    for path in paths:
+        read_obj(path)
+    bulk = time.perf_counter() - start
+    start = time.perf_counter()
+    load_obj_folder(source)
+    folder = time.perf_counter() - start
+    return {"obj_files": len(paths), "line_by_line_reader_all_faces": round(line_by_line, 3),
+            "bulk_reader_all_faces": round(bulk, 3), "load_obj_folder": round(folder, 3),
+            "reader_speedup": round(line_by_line / bulk, 1),
+            "folder_speedup": round(line_by_line / folder, 1)}
+
+
+def run_cli_case():
+    """batch_clone.py --no-preview on an OBJ folder onto a 7k target: wall seconds from process
+    start to exit (.blend written), its own timings, and both OBJ readers on the same folder."""
+    import tempfile
+    with tempfile.TemporaryDirectory(prefix="bench_cli_") as temporary:
+        folder = Path(temporary)
+        source, target = write_cli_inputs(folder)
+        out = folder / "out" / "result.blend"
+        command = [sys.executable, str(CLI), "--source", str(source), "--target", str(target),
+                   "--out", str(out), "--no-preview"]
+        start = time.perf_counter()
+        proc = subprocess.run(command, capture_output=True, text=True, cwd=folder)
+        wall = time.perf_counter() - start
+        if proc.returncode != 0 or not out.is_file():
+            return {"error": (proc.stderr.strip().splitlines() or ["no .blend written"])[-1]}
+        report = json.loads(out.with_suffix(".json").read_text(encoding="utf-8"))
+        readers = folder_read_seconds(source)
+    return {"command": "batch_clone.py --source <11 OBJs> --target <7k OBJ> --no-preview",
+            "source_vertices": report["counts"]["source_vertices"],
+            "target_vertices": report["counts"]["target_vertices"],
+            "expressions": report["counts"]["expressions"],
+            "seconds_process_start_to_blend_written": round(wall, 2),
+            "cli_timings": {k: round(v, 3) for k, v in report["timings"].items()},
+            "obj_folder_read": readers}
 
 
 def run_compare(with_trimesh, repeats=2):
@@ -421,6 +514,8 @@ def main(argv=None):
     if args.case:
         if args.case == "compare":
             result = run_compare(with_trimesh=not args.no_trimesh)
+        elif args.case == "cli_obj_folder":
+            result = run_cli_case()
         else:
             result = run_case(args.case)
         print(json.dumps(result))
@@ -428,7 +523,7 @@ def main(argv=None):
 
     started = time.perf_counter()
     load_before = os.getloadavg()
-    names = ["face"] if args.quick else ["face", "head", "face_dense_target"]
+    names = ["face"] if args.quick else ["face", "head", "face_dense_target", "cli_obj_folder"]
     cases = {}
     for name in names:
         print(f"bench_clone: case {name} ...", file=sys.stderr, flush=True)
