@@ -153,3 +153,57 @@ def test_operator_polls_for_an_active_mesh(head):
     target = mesh_io.object_from_mesh("head", head)
     bpy.context.view_layer.objects.active = target
     assert bpy.ops.exclone.clone_expressions.poll()
+
+
+# -- linked (read-only) data ----------------------------------------------------------------------
+
+def linked_head(head, tmp_path):
+    """The head written to a .blend, then linked from it (read-only) into the scene and made
+    the active object: (the linked object, the library file)."""
+    obj = mesh_io.object_from_mesh("head", head)
+    path = tmp_path / "library.blend"
+    bpy.data.libraries.write(str(path), {obj})
+    mesh = obj.data
+    bpy.data.objects.remove(obj)
+    bpy.data.meshes.remove(mesh)
+    with bpy.data.libraries.load(str(path), link=True) as (_, linked):
+        linked.objects = ["head"]
+    obj = linked.objects[0]
+    bpy.context.scene.collection.objects.link(obj)
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    assert obj.library is not None and obj.data.library is not None
+    return obj, path
+
+
+LINKED = r"^'head' is linked from a library \(read-only\): make it local first " \
+         r"\(Object > Relations > Make Local\)$"
+
+
+@pytest.mark.parametrize("operator, options", [("clone_expressions", {"use_library": True}),
+                                               ("generate_arkit_shapes", {}),
+                                               ("register_faces", {"use_library": True})])
+def test_a_linked_target_is_refused_before_any_work(head, tmp_path, operator, options):
+    obj, _ = linked_head(head, tmp_path)
+    objects = set(bpy.data.objects)
+    with pytest.raises(RuntimeError, match=LINKED[1:-1]) as error:
+        getattr(bpy.ops.exclone, operator)(**options)
+    assert str(error.value).strip().count("\n") == 0, "one line"
+    assert obj.data.shape_keys is None and set(bpy.data.objects) == objects
+    assert not obj.keys(), "nothing stored on the object"
+
+
+def test_a_linked_mesh_in_a_target_blend_is_refused_by_the_command_line(head, tmp_path):
+    """A .blend whose object 'head' is its own but whose mesh is linked from another file:
+    appending the object brings the mesh along still linked, so the keys would be lost."""
+    from exclone_addon.blender import files
+    from exclone_addon.core.errors import ExCloneError
+    linked, _ = linked_head(head, tmp_path)
+    mesh = linked.data
+    bpy.data.objects.remove(linked)
+    bpy.context.scene.collection.objects.link(bpy.data.objects.new("head", mesh))
+    scene_file = tmp_path / "scene.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(scene_file))
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    with pytest.raises(ExCloneError, match=LINKED):
+        files.load_target(f"{scene_file}:head")

@@ -166,7 +166,7 @@ def load_target(spec):
     if suffix not in CONTAINERS:
         raise ExCloneError(f"target {path}: unsupported file type '{path.suffix}' "
                            "(use .blend, .obj, .fbx or .glb)")
-    obj = pick_object(path, name, "target", need_shape_keys=False)
+    obj = mesh_io.checked_editable(pick_object(path, name, "target", need_shape_keys=False))
     description = f"{path}:{obj.name}"
     mesh = _checked(mesh_io.mesh_from_object(obj, what="target"), f"target {description}")
     _keep_only(obj)

@@ -6,6 +6,7 @@ so deltas written back line up with the vertices they were computed from.
 import bpy
 import numpy as np
 
+from ..core.errors import ExCloneError
 from ..core.mesh import MeshError, PolyMesh
 
 
@@ -20,6 +21,15 @@ def _mesh_data(obj, what):
         kind = "nothing" if obj is None else f"a {obj.type.lower()} object"
         raise MeshError(f"{what} must be a mesh object, got {kind}")
     return obj.data
+
+
+def checked_editable(obj):
+    """obj, or ExCloneError if it or its mesh is linked from a library: linked data is read-only,
+    so shape keys or landmarks written to it would be gone after save and reload."""
+    if obj.library is not None or obj.data.library is not None:
+        raise ExCloneError(f"'{obj.name}' is linked from a library (read-only): make it local "
+                           "first (Object > Relations > Make Local)")
+    return obj
 
 
 def _polymesh(me):

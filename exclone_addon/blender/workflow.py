@@ -124,7 +124,7 @@ def checked_target(obj):
         raise ExCloneError("Nothing selected: make the target head the active object")
     if obj.type != 'MESH':
         raise ExCloneError(f"Target '{obj.name}' is not a mesh")
-    return obj
+    return mesh_io.checked_editable(obj)
 
 
 def basis_mesh(obj, role):

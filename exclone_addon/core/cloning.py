@@ -3,11 +3,14 @@
 
 fit_faces runs the first four once per source and target (a FaceFit); transfer_expressions
 carries any number of expressions through a fit; clone_expressions does both. Each mesh is
-prepared once as a surface.Surface and passed from step to step.
+welded by position (copies an exporter split at UV seams become one vertex, mesh.welded) and
+prepared once as a surface.Surface passed from step to step; every copy of a vertex gets the
+same motion. Ids and arrays in and out are in the caller's numbering.
 """
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -17,7 +20,7 @@ from . import deformation
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
 from .errors import ExCloneError
 from .landmarks import MIN_PAIRS, automatic_landmarks, checked_pairs
-from .mesh import checked_triangles, vertex_parts
+from .mesh import checked_triangles, vertex_parts, welded
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .surface import Surface
@@ -52,9 +55,13 @@ class CloneResult:
 class FaceFit:
     """Registration and correspondence of a source face onto a target: all the transfer needs.
 
-    One fit serves any number of transfers (e.g. Register, then Clone of a chosen subset)."""
-    source: object                    # surface.Surface of the source mesh, its own coordinates
-    target: object                    # PolyMesh
+    One fit serves any number of transfers (e.g. Register, then Clone of a chosen subset). The
+    surfaces and solve arrays are in the welded numbering (mesh.welded); the landmarks and the
+    registered source in the meshes' own."""
+    source: object                    # surface.Surface of the welded source mesh, its own coordinates
+    target: object                    # PolyMesh as given
+    welded_target: object             # Welded: the target welded for the solve
+    source_weld: object               # Welded: the source's
     target_region: object             # surface.Surface of the target triangles that get gradients
     source_region: np.ndarray         # (S, 3) the registered source triangles
     rotation: np.ndarray              # (3, 3) \
@@ -65,13 +72,30 @@ class FaceFit:
     pairs: object                     # (T, S) sparse triangle pairs (elsewhere)
     weights: np.ndarray               # (T,) each target triangle's weight in the transfer
     formulation: str
-    source_landmarks: np.ndarray
-    target_landmarks: np.ndarray
+    source_landmarks: np.ndarray      # (K,) source vertex ids, the source's own numbering
+    target_landmarks: np.ndarray      # (K,) target vertex ids, the target's own numbering
     landmark_names: list
-    registered_source: np.ndarray
+    registered_source: np.ndarray     # (n_source, 3) in the source's own numbering
     timings: dict = field(default_factory=dict)
     quality: dict = field(default_factory=dict)
     _transfer: object = None          # the factorised system, made on the first transfer
+
+
+@dataclass
+class Welded:
+    """A mesh welded by position for the solve (mesh.welded), and the way back to its own
+    numbering."""
+    surface: object                   # surface.Surface of the welded mesh's valid triangles
+    mesh: object                      # the welded PolyMesh
+    index: np.ndarray                 # (n,) welded id of each of the mesh's own vertices
+
+    @cached_property
+    def originals(self):
+        """(k,) the first own vertex of each welded one."""
+        return np.unique(self.index, return_index=True)[1]
+
+    def own_count(self):
+        return len(self.index)
 
 
 # ------------------------------------------------------------------------------ fitting
@@ -87,16 +111,19 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     progress: optional callable(fraction, message); it may raise core.errors.Cancelled.
     Raises ExCloneError with a user-facing message on bad input.
     """
-    return _fit(_surface_of(source, "source mesh"), target, landmarks, source_landmarks,
+    return _fit(_welded_surface(source, "source mesh"), target, landmarks, source_landmarks,
                 _checked_settings(settings), _progress_span(progress, 0.0, 1.0))
 
 
-def _fit(source, target_mesh, landmarks, source_landmarks, settings, report):
-    """fit_faces on the source's Surface (whole mesh); report(fraction, message) or a no-op."""
+def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report):
+    """fit_faces on the welded source (Welded, whole mesh); report(fraction, message) or a
+    no-op."""
     stopwatch = _Stopwatch()
-    target = _surface_of(target_mesh, "target mesh")
+    target_weld = _welded_surface(target_mesh, "target mesh")
+    source, target = source_weld.surface, target_weld.surface
     report(0.0, "landmarks")
-    src_lm, tgt_lm, landmark_names = _landmarks(source, target, landmarks, source_landmarks)
+    src_lm, tgt_lm, landmark_names = _landmarks(source_weld, target_weld, landmarks,
+                                                source_landmarks)
     stopwatch.lap("landmarks")
 
     report(0.2, "registration")
@@ -113,11 +140,14 @@ def _fit(source, target_mesh, landmarks, source_landmarks, settings, report):
     stopwatch.lap("correspondence")
     report(1.0, "fitted")
     return FaceFit(
-        source=source, target=target_mesh, target_region=target_region,
+        source=source, target=target_mesh, welded_target=target_weld, source_weld=source_weld,
+        target_region=target_region,
         source_region=source_region.triangles, rotation=rotation, scale=scale,
         aligned_source=aligned.vertices, vertex_map=vertex_map, mapped=mapped, pairs=pairs,
-        weights=weights, formulation=settings.formulation, source_landmarks=src_lm,
-        target_landmarks=tgt_lm, landmark_names=landmark_names, registered_source=reg.vertices,
+        weights=weights, formulation=settings.formulation,
+        source_landmarks=source_weld.originals[src_lm],
+        target_landmarks=target_weld.originals[tgt_lm], landmark_names=landmark_names,
+        registered_source=reg.vertices[source_weld.index],
         timings=stopwatch.timings,
         quality={**_registration_quality(reg, target_region.diagonal, len(src_lm)),
                  **_correspondence_quality(mapped, weights, scale, target_region.diagonal)})
@@ -142,21 +172,27 @@ def _checked_settings(settings):
     return settings
 
 
-def _surface_of(mesh, what):
-    """The Surface of a PolyMesh's valid triangles (MeshError if the mesh cannot be used)."""
-    return Surface(*checked_triangles(mesh, what))
+def _welded_surface(mesh, what):
+    """The PolyMesh welded by position, with the Surface of its valid triangles (MeshError if
+    the mesh cannot be used)."""
+    welded_mesh, index = welded(mesh)
+    return Welded(Surface(*checked_triangles(welded_mesh, what)), welded_mesh, index)
 
 
-def _landmarks(source, target, landmarks, source_landmarks):
-    """(source ids, target ids, names): the given pairs, checked, or automatic ones."""
+def _landmarks(source_weld, target_weld, landmarks, source_landmarks):
+    """(source ids, target ids, names) in the welded numbering: the given pairs (the meshes'
+    own ids), checked, or automatic ones."""
+    source, target = source_weld.surface, target_weld.surface
     if landmarks is not None:
-        src_lm, tgt_lm = checked_pairs(landmarks, len(source.vertices), len(target.vertices))
-        return src_lm, tgt_lm, [f"landmark_{k}" for k in range(len(src_lm))]
+        src_lm, tgt_lm = checked_pairs(landmarks, source_weld.own_count(), target_weld.own_count())
+        return (source_weld.index[src_lm], target_weld.index[tgt_lm],
+                [f"landmark_{k}" for k in range(len(src_lm))])
     if source_landmarks is not None:
         src_names, src_ids = list(source_landmarks[0]), np.asarray(source_landmarks[1])
         if len(src_names) != len(src_ids) or np.any(src_ids < 0) \
-                or np.any(src_ids >= len(source.vertices)):
+                or np.any(src_ids >= source_weld.own_count()):
             raise ExCloneError("the source's landmarks do not fit its mesh")
+        src_ids = source_weld.index[src_ids]
 
     def find(surface):
         frame = face_frame(surface.vertices, surface.triangles, surface.search)
@@ -253,18 +289,23 @@ def fit_registered(source, target, registered_source, *, settings=None):
     """
     settings = _checked_settings(settings)
     start = time.perf_counter()
-    source_surface, target_region = _surface_of(source, "source mesh"), _surface_of(target, "target mesh")
+    source_weld, target_weld = _welded_surface(source, "source mesh"), _welded_surface(target, "target mesh")
+    source_surface, target_region = source_weld.surface, target_weld.surface
     registered = np.asarray(registered_source, dtype=np.float64)
-    if registered.shape != source_surface.vertices.shape or not np.all(np.isfinite(registered)):
+    expected = (source_weld.own_count(), 3)
+    if registered.shape != expected or not np.all(np.isfinite(registered)):
         raise ExCloneError(f"the registered source has shape {registered.shape} or invalid values; "
-                           f"expected {source_surface.vertices.shape} finite positions")
+                           f"expected {expected} finite positions")
+    registered_welded = registered[source_weld.originals]
     ids = source_surface.used
-    rotation, scale, shift = similarity_transform(source_surface.vertices[ids], registered[ids])
-    vertex_map, mapped, pairs, weights = _correspond(source_surface.moved(registered),
+    rotation, scale, shift = similarity_transform(source_surface.vertices[ids],
+                                                  registered_welded[ids])
+    vertex_map, mapped, pairs, weights = _correspond(source_surface.moved(registered_welded),
                                                      target_region, settings)
     none = np.zeros(0, dtype=np.int64)
     return FaceFit(
-        source=source_surface, target=target, target_region=target_region,
+        source=source_surface, target=target, welded_target=target_weld, source_weld=source_weld,
+        target_region=target_region,
         source_region=source_surface.triangles, rotation=rotation, scale=scale,
         aligned_source=source_surface.vertices @ rotation.T * scale + shift,
         vertex_map=vertex_map, mapped=mapped, pairs=pairs, weights=weights,
@@ -276,11 +317,12 @@ def fit_registered(source, target, registered_source, *, settings=None):
 
 # ------------------------------------------------------------------------------ transfer
 
-def _checked_deltas(source_deltas, names, source):
-    """The expressions' deltas as float64 (E, n_source, 3), checked against the source Surface
-    before any long work: ExCloneError naming what is wrong."""
+def _checked_deltas(source_deltas, names, source_weld):
+    """The expressions' deltas (E, n_source, 3) as float64 on the welded source (E, k, 3: each
+    welded vertex moves as its first copy), checked against the source before any long work:
+    ExCloneError naming what is wrong."""
     deltas = np.asarray(source_deltas, dtype=np.float64)
-    n_source = len(source.vertices)
+    n_source, source = source_weld.own_count(), source_weld.surface
     if deltas.ndim != 3 or deltas.shape[1:] != (n_source, 3):
         raise ExCloneError(f"expression deltas have shape {deltas.shape}; expected (E, {n_source}, 3)")
     if len(names) != len(deltas):
@@ -291,8 +333,9 @@ def _checked_deltas(source_deltas, names, source):
                            "infinite values")
     # A vertex of the face moving further than the whole face measures is no expression: the
     # deltas were made at another scale or in other units than the neutral.
+    welded_deltas = deltas[:, source_weld.originals]
     with np.errstate(over="ignore"):
-        squared = np.einsum("eij,eij->ei", deltas, deltas)[:, source.used]
+        squared = np.einsum("eij,eij->ei", welded_deltas, welded_deltas)[:, source.used]
     reach = np.sqrt(squared.max(axis=1, initial=0.0))
     absurd = reach > source.diagonal
     if absurd.any():
@@ -301,7 +344,7 @@ def _checked_deltas(source_deltas, names, source):
             f"{reach[absurd].max():.3g}, more than the whole source mesh measures "
             f"({source.diagonal:.3g}): the expressions and the neutral mesh are probably in "
             "different units or scales")
-    return deltas
+    return welded_deltas
 
 
 def _listed(names, mask, most=5):
@@ -314,9 +357,11 @@ def _listed(names, mask, most=5):
 @limited_threads
 def transfer_expressions(fit, source_deltas, names):
     """Every source expression onto the fitted target: CloneResult (timings and quality include
-    the fit's). The transfer system is factorised once per fit and reused by later calls."""
+    the fit's). source_deltas (E, n_source, 3) and the result's deltas (E, n_target, 3) are in
+    the meshes' own numbering; every copy of a welded vertex gets its motion. The transfer system
+    is factorised once per fit and reused by later calls."""
     start = time.perf_counter()
-    deltas = _checked_deltas(source_deltas, names, fit.source)
+    deltas = _checked_deltas(source_deltas, names, fit.source_weld)
     result = np.zeros((len(deltas), len(fit.target_region.vertices), 3))
     # an expression that moves nothing gives exactly nothing (the solve would leave ~1e-16)
     moving = deltas.any(axis=(1, 2))
@@ -324,7 +369,8 @@ def transfer_expressions(fit, source_deltas, names):
         result[moving] = _transferred(fit, deltas[moving])
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
     timings["total"] = sum(timings.values())
-    return CloneResult(list(names), result, fit.source_landmarks, fit.target_landmarks,
+    return CloneResult(list(names), result[:, fit.welded_target.index], fit.source_landmarks,
+                       fit.target_landmarks,
                        fit.landmark_names, fit.registered_source, timings, dict(fit.quality))
 
 
@@ -337,7 +383,7 @@ def _transferred(fit, deltas):
         fit._transfer = Transfer(fit.target_region.vertices, fit.target_region.triangles,
                                  fit.weights, fit.formulation)
     result = fit._transfer(wanted, moves_at[:, anchors], anchors)
-    _follow_unsolved(result, fit.target_region, fit.target.triangles())
+    _follow_unsolved(result, fit.target_region, fit.welded_target.mesh.triangles())
     if not np.all(np.isfinite(result)):
         raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
     return result
@@ -388,13 +434,13 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
     Raises ExCloneError with a user-facing message on bad input.
     """
     settings = _checked_settings(settings)
-    source_surface = _surface_of(source, "source mesh")
-    deltas = _checked_deltas(source_deltas, names, source_surface)   # before the long part
-    fit = _fit(source_surface, target, landmarks, source_landmarks, settings,
+    source_weld = _welded_surface(source, "source mesh")
+    _checked_deltas(source_deltas, names, source_weld)   # before the long part
+    fit = _fit(source_weld, target, landmarks, source_landmarks, settings,
                _progress_span(progress, 0.0, 0.8))
     if progress:
         progress(0.8, "transfer")
-    result = transfer_expressions(fit, deltas, names)
+    result = transfer_expressions(fit, source_deltas, names)
     if progress:
         progress(1.0, "done")
     return result

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from .errors import ExCloneError
 
@@ -160,6 +161,59 @@ def write_obj(path, mesh, header=None):
         np.savetxt(fh, mesh.vertices, fmt="v %.7g %.7g %.7g")
         for face in mesh.faces():
             fh.write("f " + " ".join(str(i + 1) for i in face) + "\n")
+
+
+# Vertices closer than this (x the bounding-box diagonal) are one point (docs/method.md §2).
+WELD_TOLERANCE = 1e-6
+
+
+def welded(mesh):
+    """(the mesh with its split copies joined, (n,) welded vertex id of every original vertex).
+
+    Exporters split vertices where the UV map is cut (glTF, FBX), or give every polygon its own:
+    the copies lie within WELD_TOLERANCE of the diagonal of each other, on open border edges
+    that are also there twice (the two sides of the cut). Those copies become one vertex, the
+    first of them in the original order, so welded vertices keep the originals' order and a mesh
+    without such copies comes back as it is, with the identity map. Separate parts that only
+    touch (eyelashes planted on a lid) are not a cut and stay apart."""
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    n = len(vertices)
+    if n == 0 or not np.all(np.isfinite(vertices)):       # check_mesh says what is wrong
+        return mesh, np.arange(n)
+    pairs = cKDTree(vertices).query_pairs(WELD_TOLERANCE * diagonal(vertices),
+                                          output_type="ndarray")
+    if len(pairs):
+        on_cut = _on_cut_edges(n, pairs, boundary_edges(mesh.triangles()))
+        pairs = pairs[on_cut[pairs[:, 0]] & on_cut[pairs[:, 1]]]
+    if not len(pairs):
+        return mesh, np.arange(n)
+    groups = _groups(n, pairs)
+    representatives = np.sort(np.unique(groups, return_index=True)[1])    # each group's first
+    # groups numbered in the order of their first vertex: welded order is the original order
+    number = np.empty(len(representatives), dtype=np.int64)
+    number[groups[representatives]] = np.arange(len(representatives))
+    index = number[groups]
+    loops = index[np.asarray(mesh.loop_vertices, dtype=np.int64)]
+    return PolyMesh(vertices[representatives], np.asarray(mesh.loop_totals), loops), index
+
+
+def _groups(n, pairs):
+    """(n,) a label per vertex: vertices joined by the pairs (chains too) share one."""
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+    return connected_components(graph, directed=False)[1]
+
+
+def _on_cut_edges(n, pairs, border):
+    """(n,) True on the vertices of an open border edge that lies twice at one place (pairs:
+    the vertices at one place; border: the (k, 2) open border edges)."""
+    place = _groups(n, pairs)
+    ends = np.sort(place[border], axis=1)
+    keys = ends[:, 0] * n + ends[:, 1]                # one integer per place of an edge
+    _, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    twice = (counts[inverse] > 1) & (ends[:, 0] != ends[:, 1])
+    mask = np.zeros(n, dtype=bool)
+    mask[border[twice].ravel()] = True
+    return mask
 
 
 def corner_normals(corners, normalize=True):
