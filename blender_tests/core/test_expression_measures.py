@@ -131,6 +131,8 @@ def test_lip_gap_and_the_combined_jaw_open_and_mouth_close():
     assert summary["jawOpen_lip_gap"] == pytest.approx(0.05)
     assert summary["jawOpen+mouthClose_lip_gap"] == pytest.approx(0.0, abs=1e-12)
     assert summary["eyeBlink_L_gap"] is None            # no such expression: no figure
+    assert summary["worst_motion_outside"] == 0.0
+    assert summary["worst_motion_outside_expression"] is None   # nothing outside moved
 
 
 def test_an_eye_without_a_hole_or_a_fold_is_none_with_a_reason():

@@ -336,8 +336,9 @@ BLINKS = {"eyeBlink_L": ("left", "right"), "eyeBlink_R": ("right", "left")}   # 
 def summary(measures):
     """The figures a user reads first, from measure_expressions' result: for each blink the
     closing eye's and the other eye's gap, the lip gap at jawOpen and jawOpen+mouthClose, and
-    the worst edge stretch, flipped-triangle count and motion outside with their expressions.
-    A figure that cannot be had (no such expression, no lids found) is None."""
+    the worst edge stretch, flipped-triangle count and motion outside with their expressions
+    (None where nothing stretched, flipped or moved). A figure that cannot be had (no such
+    expression, no lids found) is None."""
     found = {}
     for name, (closing, other) in BLINKS.items():
         row = measures.get(name, {})
@@ -345,8 +346,12 @@ def summary(measures):
         found[f"{name}_other_eye_gap"] = row.get(f"eyelid_gap_{other}")
     for name in ("jawOpen", MEASURED_TOGETHER):
         found[f"{name}_lip_gap"] = measures.get(name, {}).get("lip_gap")
-    for key in ("edge_stretch", "flipped_triangles", "motion_outside"):
+    # the worst figure's expression is named only where something changed at all
+    for key, unchanged in (("edge_stretch", 1.0), ("flipped_triangles", 0),
+                           ("motion_outside", 0.0)):
         worst = max(measures, key=lambda name: measures[name][key], default=None)
-        found[f"worst_{key}"] = None if worst is None else measures[worst][key]
-        found[f"worst_{key}_expression"] = worst
+        figure = None if worst is None else measures[worst][key]
+        found[f"worst_{key}"] = figure
+        found[f"worst_{key}_expression"] = worst if figure is not None and figure > unchanged \
+            else None
     return found
