@@ -40,6 +40,8 @@ def factorised(matrix):
     """(name, solve) for the symmetric positive definite CSC `matrix`: solve(B) returns
     matrix^-1 B for a (N,) or (N, k) B. Sparse Cholesky where cholespy is installed and finds
     the matrix positive definite, else SuperLU."""
+    if not np.all(matrix.diagonal() > 0):     # SuperLU aborts the process on an all-zero matrix
+        raise _no_unique_solution()
     if cholespy is not None:
         try:
             return CHOLESKY, _cholesky(matrix)
@@ -69,9 +71,13 @@ def _lu(matrix):
         factor = splu(matrix, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0,
                       options={"SymmetricMode": True})
     except RuntimeError as exc:       # SuperLU: "Factor is exactly singular"
-        raise ExCloneError("the transfer's equations have no unique solution (the target "
-                           "mesh's triangles are too thin); clean up the mesh") from exc
+        raise _no_unique_solution() from exc
     return lambda rhs: factor.solve(np.ascontiguousarray(rhs))
+
+
+def _no_unique_solution():
+    return ExCloneError("the transfer's equations have no unique solution (the target mesh's "
+                        "triangles are too thin); clean up the mesh")
 
 
 class Transfer:
