@@ -83,7 +83,7 @@ MIB = 1024.0 * 1024.0
 TRIMESH_STEPS = [[1, 0.001, 1.0, 1000, 0], [1, 0.001, 1.0, 1000, 0],
                  [10, 0.001, 1.0, 1000, 0], [100, 0.001, 1.0, 1000, 0]]
 
-# Targets of the benchmark issue.
+# The speed and error targets the benchmark is judged on (README, Benchmarks).
 TARGET_FACE_SETUP_S = 2.0      # landmarks + registration + correspondence, face region onto head
 TARGET_FACE_TRANSFER_S = 1.0   # transfer of all 57 expressions after that
 TARGET_REDUCED_SPEEDUP = 2.5   # reduced vs augmented registration, at no worse error
@@ -470,7 +470,7 @@ def in_subprocess(case, extra=()):
 
 
 def targets(cases, compare):
-    """Pass/fail of the issue's targets (None where the figure is missing)."""
+    """Pass/fail of the targets above (None where the figure is missing)."""
     face = cases.get("face", {})
     out = {}
     if "seconds_warm" in face:
