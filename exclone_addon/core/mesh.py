@@ -34,7 +34,7 @@ class PolyMesh:
         return cls(np.asarray(vertices, dtype=np.float64), totals, loops)
 
     def triangles(self):
-        return triangulate(self.loop_totals, self.loop_vertices)
+        return triangulate(self.loop_totals, self.loop_vertices, self.vertices)
 
     def faces(self):
         if len(self.loop_totals) == 0:
@@ -42,8 +42,13 @@ class PolyMesh:
         return np.split(self.loop_vertices, np.cumsum(self.loop_totals)[:-1])
 
 
-def triangulate(loop_totals, loop_vertices):
-    """Fan-triangulate every polygon (quads and convex n-gons); returns (T, 3) int64."""
+def triangulate(loop_totals, loop_vertices, vertices=None):
+    """Triangles of every polygon, polygon by polygon in its winding; returns (T, 3) int64.
+
+    Triangles and quads are fanned from their first corner. Polygons of five corners or more are
+    fanned too without `vertices`; with them, they are cut ear by ear in their own plane, so a
+    concave one (a cap closing a neck, a few faces merged) is covered without triangles that
+    fold outside it."""
     totals = np.asarray(loop_totals, dtype=np.int64)
     loops = np.asarray(loop_vertices, dtype=np.int64)
     if np.any(totals < 3):
@@ -53,7 +58,52 @@ def triangulate(loop_totals, loop_vertices):
     poly = np.repeat(np.arange(len(totals)), fans)
     k = np.arange(fans.sum()) - np.repeat(np.cumsum(fans) - fans, fans)
     first = starts[poly]
-    return np.stack([loops[first], loops[first + k + 1], loops[first + k + 2]], axis=1)
+    triangles = np.stack([loops[first], loops[first + k + 1], loops[first + k + 2]], axis=1)
+    if vertices is not None:
+        rows = np.cumsum(fans) - fans               # each polygon's first triangle
+        for p in np.flatnonzero(totals > 4):
+            corners = loops[starts[p]:starts[p] + totals[p]]
+            triangles[rows[p]:rows[p] + fans[p]] = corners[_ears(np.asarray(vertices)[corners])]
+    return triangles
+
+
+def _ears(points):
+    """(k - 2, 3) corner numbers of the triangles that cut the polygon `points` (k, 3) ear by
+    ear (each triangle in the polygon's winding), projected onto its own plane (Newell's
+    normal). Where no ear is left (a polygon that crosses itself in that plane) the rest is
+    fanned."""
+    normal = np.cross(points, np.roll(points, -1, axis=0)).sum(axis=0)
+    axis_u = np.cross(normal, np.eye(3)[np.argmin(np.abs(normal))])
+    axis_v = np.cross(normal, axis_u)
+    flat = points @ np.stack([axis_u, axis_v], axis=1)
+    sign = 1.0 if np.cross(flat, np.roll(flat, -1, axis=0)).sum() >= 0 else -1.0
+    left, ears = list(range(len(points))), []
+    while len(left) > 3:
+        ear = next((j for j in range(len(left)) if _is_ear(flat, left, j, sign)), None)
+        if ear is None:
+            break
+        ears.append((left[ear - 1], left[ear], left[(ear + 1) % len(left)]))
+        del left[ear]
+    ears += [(left[0], left[i], left[i + 1]) for i in range(1, len(left) - 1)]
+    return np.array(ears, dtype=np.int64)
+
+
+def _is_ear(flat, left, j, sign):
+    """Whether corner left[j] of the polygon left (ids into flat (k, 2)) is convex and its
+    triangle with its two neighbours holds no other corner."""
+    a, b, c = flat[left[j - 1]], flat[left[j]], flat[left[(j + 1) % len(left)]]
+    if sign * _turn(a, b, c) <= 0:
+        return False
+    others = flat[[i for i in left if i not in (left[j - 1], left[j], left[(j + 1) % len(left)])]]
+    inside = (sign * _turn(a, b, others) >= 0) & (sign * _turn(b, c, others) >= 0) \
+        & (sign * _turn(c, a, others) >= 0)
+    return not inside.any()
+
+
+def _turn(a, b, c):
+    """z of (b - a) x (c - a): positive where a, b, c turn counter-clockwise."""
+    return (b[..., 0] - a[..., 0]) * (c[..., 1] - a[..., 1]) \
+        - (b[..., 1] - a[..., 1]) * (c[..., 0] - a[..., 0])
 
 
 def read_obj(path, faces=True):
