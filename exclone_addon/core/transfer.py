@@ -40,7 +40,7 @@ def factorised(matrix):
     """(name, solve) for the symmetric positive definite CSC `matrix`: solve(B) returns
     matrix^-1 B for a (N,) or (N, k) B. Sparse Cholesky where cholespy is installed and finds
     the matrix positive definite, else SuperLU."""
-    if not np.all(matrix.diagonal() > 0):     # SuperLU aborts the process on an all-zero matrix
+    if not matrix.count_nonzero():      # all zero: cholespy fails on it, then aborts the process
         raise _no_unique_solution()
     if cholespy is not None:
         try:
