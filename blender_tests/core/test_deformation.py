@@ -258,9 +258,12 @@ def test_cholesky_and_superlu_give_the_same_clone_of_the_library_on_the_demo_hea
 
 def test_factorised_falls_back_to_superlu_on_an_indefinite_matrix():
     rng = np.random.default_rng(3)
-    matrix = sp.diags([4.0, -1.0, 2.0, 3.0]).tocsc() + sp.csc_matrix(0.1 * np.ones((4, 4)))
+    # positive diagonal, one negative eigenvalue (the 2x2 block [[1, 2], [2, 1]])
+    matrix = sp.csc_matrix(np.array([[1.0, 2.0, 0.0, 0.0], [2.0, 1.0, 0.1, 0.0],
+                                     [0.0, 0.1, 2.0, 0.3], [0.0, 0.0, 0.3, 3.0]]))
+    assert np.linalg.eigvalsh(matrix.toarray()).min() < 0
     rhs = rng.normal(size=(4, 6))
-    name, solve = transfer.factorised(matrix.tocsc())
+    name, solve = transfer.factorised(matrix)
     assert name == transfer.LU
     np.testing.assert_allclose(matrix @ solve(rhs), rhs, atol=1e-12)
 
@@ -279,9 +282,11 @@ def test_factorised_uses_cholesky_on_a_positive_definite_matrix_and_solves_every
 
 def test_a_singular_transfer_system_is_a_user_error():
     """Neither factorisation solves an exactly singular matrix: the user is told to clean up."""
-    matrix = sp.diags([1.0, 0.0, 2.0]).tocsc()
-    with pytest.raises(ExCloneError, match="no unique solution"):
-        transfer.factorised(matrix)
+    zero_row = sp.diags([1.0, 0.0, 2.0]).tocsc()
+    dependent_rows = sp.csc_matrix(np.array([[1.0, 1.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 2.0]]))
+    for matrix in (zero_row, dependent_rows):
+        with pytest.raises(ExCloneError, match="no unique solution"):
+            transfer.factorised(matrix)
 
 
 def test_reused_ordering_solver_matches_spsolve_on_a_changing_diagonal(head):
