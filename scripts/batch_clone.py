@@ -2,11 +2,13 @@
 
     python scripts/batch_clone.py [--source S] [--target T] [--out OUT.blend] [--export-dir DIR]
         [--report R.json] [--landmarks L.json] [--shapes NAME,NAME...] [--preview P.png]
+        [--no-preview]
     python scripts/batch_clone.py --target T1 --target T2|FOLDER ... [--out-dir DIR] [--jobs N]
     blender -b --python scripts/batch_clone.py -- ARGS
 
 With no arguments: the bundled ICT-FaceKit ARKit library onto the bundled demo head, written to
-out/demo_head_exclone.blend, .json and .png.
+out/demo_head_exclone.blend, .json and .png (--no-preview: no .png, and no render, which takes
+a few seconds per target).
 
 Input files are only read (see exclone_addon/blender/files.py). Every output path is checked
 before any work; the outputs are written under temporary names and moved into place together at
@@ -46,6 +48,7 @@ from exclone_addon.blender import files, mesh_io, preview  # noqa: E402
 from exclone_addon.core import data, reports  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
+from exclone_addon.core.expression_measures import measure_clone, summary  # noqa: E402
 from exclone_addon.core.landmarks import checked_pairs  # noqa: E402
 from exclone_addon.core.mesh import PolyMesh, write_obj  # noqa: E402
 
@@ -85,11 +88,16 @@ def _parser():
                         help="clone only these expressions")
     parser.add_argument("--preview", metavar="P.png",
                         help="contact sheet of rendered expressions (default: OUT with .png)")
+    parser.add_argument("--no-preview", action="store_true",
+                        help="no contact sheet (saves its render, a few seconds per target)")
     return parser
 
 
 def parse_args(argv):
     args = _parser().parse_args(argv)
+    if args.preview and args.no_preview:
+        raise ExCloneError("--preview names the contact sheet that --no-preview skips; give one "
+                           "of them")
     targets = args.target or []
     args.batch = len(targets) > 1 or any(files.split_spec(t)[0].is_dir() for t in targets)
     if not args.batch:
@@ -112,8 +120,12 @@ def parse_args(argv):
 class OutputPaths:
     blend: Path
     report: Path
-    preview: Path
+    preview: Path         # None: --no-preview
     export_dir: Path = None
+
+    def files(self):
+        """The output files (not the export folder's)."""
+        return [path for path in (self.blend, self.report, self.preview) if path is not None]
 
 
 def output_paths(args):
@@ -122,12 +134,13 @@ def output_paths(args):
     out = Path(args.out) if args.out else Path("out") / f"{target_file.stem}_exclone.blend"
     if out.suffix.lower() != ".blend":
         raise ExCloneError(f"--out must name a .blend file, got {out}")
+    preview = None if args.no_preview else \
+        Path(args.preview) if args.preview else out.with_suffix(".png")
     paths = OutputPaths(out, Path(args.report) if args.report else out.with_suffix(".json"),
-                        Path(args.preview) if args.preview else out.with_suffix(".png"),
-                        Path(args.export_dir) if args.export_dir else None)
-    if paths.preview.suffix.lower() != ".png":
-        raise ExCloneError(f"--preview must name a .png file, got {paths.preview}")
-    for path in (paths.blend, paths.report, paths.preview):
+                        preview, Path(args.export_dir) if args.export_dir else None)
+    if preview is not None and preview.suffix.lower() != ".png":
+        raise ExCloneError(f"--preview must name a .png file, got {preview}")
+    for path in paths.files():
         check_output_writable(path)
     if paths.export_dir is not None:
         check_folder_writable(paths.export_dir)
@@ -272,7 +285,7 @@ def read_inputs(args, paths, timings):
         landmarks = read_landmarks(Path(args.landmarks), len(source.mesh.vertices),
                                    len(target.mesh.vertices))
         inputs.append(Path(args.landmarks))
-    outputs = [paths.blend, paths.report, paths.preview]
+    outputs = paths.files()
     if paths.export_dir is not None:
         outputs += export_paths(paths.export_dir, source.names).values()
     refuse_overwriting_inputs(outputs, inputs)
@@ -280,8 +293,9 @@ def read_inputs(args, paths, timings):
 
 
 def write_outputs(outputs, paths, target, result, timings):
-    """The target's new shape keys, saved in a .blend, exported as OBJs and rendered; returns
-    (added, replaced, skipped, exported paths or None, preview engine)."""
+    """The target's new shape keys, saved in a .blend, exported as OBJs and rendered (unless
+    --no-preview); returns (added, replaced, skipped, exported paths or None, preview engine or
+    None)."""
     clock = time.perf_counter()
     added, replaced, skipped = mesh_io.write_shape_keys(target.obj, result.names, result.deltas)
     timings["write_shape_keys"] = time.perf_counter() - clock
@@ -295,10 +309,12 @@ def write_outputs(outputs, paths, target, result, timings):
         exported = export_shapes(outputs, paths.export_dir, target.mesh, added,
                                  result.deltas[rows])
         timings["export_obj"] = time.perf_counter() - clock
-    clock = time.perf_counter()
-    sheet, engine = preview.contact_sheet(target.obj, target.mesh.vertices, added)
-    outputs.write(paths.preview, lambda path: _write_png(path, sheet))
-    timings["preview"] = time.perf_counter() - clock
+    engine = None
+    if paths.preview is not None:
+        clock = time.perf_counter()
+        sheet, engine = preview.contact_sheet(target.obj, target.mesh.vertices, added)
+        outputs.write(paths.preview, lambda path: _write_png(path, sheet))
+        timings["preview"] = time.perf_counter() - clock
     return added, replaced, skipped, exported, engine
 
 
@@ -320,7 +336,8 @@ def build_report(args, paths, inputs, result, written, timings):
                       "names": list(result.landmark_names),
                       "automatic": inputs.landmarks is None},
         "outputs": {"blend": str(paths.blend), "report": str(paths.report),
-                    "preview": str(paths.preview), "preview_engine": engine,
+                    "preview": str(paths.preview) if paths.preview else None,
+                    "preview_engine": engine,
                     "export_dir": args.export_dir,
                     "exported_files": len(exported) if exported else 0,
                     "target_object": target.obj.name,
@@ -344,18 +361,25 @@ def run(args):
                                settings=CloneSettings(), progress=_print_progress())
     timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
     timings["clone_total"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    measures = measure_clone(inputs.target.mesh, result)
+    timings["measures"] = time.perf_counter() - clock
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings)
         timings["total"] = time.perf_counter() - started
         report = build_report(args, paths, inputs, result, written, timings)
+        report["measures"] = {"summary": summary(measures), "expressions": measures}
         _write_json(outputs, paths.report, report)
         outputs.commit()
     added, replaced, skipped, exported, _ = written
-    print(f"blend:   {paths.blend}\nreport:  {paths.report}\npreview: {paths.preview}"
+    print(f"blend:   {paths.blend}\nreport:  {paths.report}"
+          + (f"\npreview: {paths.preview}" if paths.preview else "")
           + (f"\nexport:  {paths.export_dir} ({len(exported)} OBJs)" if exported else ""))
+    print("measures: " + (reports.measures_clause(report["measures"]["summary"]) or "none"))
+    rendered = f", preview {timings['preview']:.1f} s" if paths.preview else ""
     print(f"{inputs.target.obj.name}: "
           + reports.summary(added, replaced, skipped, timings["total"], result.quality)
-          + f" (cloning {timings['clone_total']:.1f} s, preview {timings['preview']:.1f} s)")
+          + f" (cloning {timings['clone_total']:.1f} s{rendered})")
     return report
 
 
@@ -413,7 +437,7 @@ def _run_target(command, spec, out, shared_args, env, export_dir):
         return entry
     report = json.loads(out.with_suffix(".json").read_text(encoding="utf-8"))
     entry.update(status="ok", blend=str(out), report=str(out.with_suffix(".json")),
-                 preview=str(out.with_suffix(".png")),
+                 preview=report["outputs"]["preview"],
                  shape_keys_added=report["counts"]["shape_keys_added"],
                  fit_error_rel=report["quality"].get("registration_mean_distance_rel"))
     return entry
@@ -450,6 +474,8 @@ def _run_targets(args, targets, out_dir):
                           ("--shapes", args.shapes)):
         if value is not None:
             shared += [option, value]
+    if args.no_preview:
+        shared.append("--no-preview")
     jobs, command, stems = min(args.jobs, len(targets)), _child_command(), output_stems(targets)
     env = _batch_environment(jobs)
     print(f"batch: {len(targets)} target(s), {jobs} at a time", flush=True)
@@ -479,7 +505,8 @@ def run_batch(args):
     summary = {"targets": entries, "succeeded": len(entries) - len(failed), "failed": len(failed),
                "jobs": jobs, "seconds": round(time.perf_counter() - started, 2),
                "arguments": {"source": args.source, "landmarks": args.landmarks,
-                             "shapes": args.shapes, "out_dir": str(out_dir),
+                             "shapes": args.shapes, "no_preview": args.no_preview,
+                             "out_dir": str(out_dir),
                              "export_dir": args.export_dir}}
     with Outputs() as outputs:
         _write_json(outputs, summary_path, summary)

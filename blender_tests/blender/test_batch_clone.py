@@ -125,6 +125,8 @@ BAD_INPUTS = {
     "export would overwrite the source": (["--source", "{in}/folder", "--export-dir", "{in}/folder"],
                                           "refusing to overwrite the input file"),
     "out not a blend": (["--out", "{in}/result.txt"], "--out must name a .blend file"),
+    "--preview with --no-preview": (["--preview", "{in}/p.png", "--no-preview"],
+                                    "--preview names the contact sheet that --no-preview skips"),
     "unknown option": (["--colour", "red"], "unrecognized arguments: --colour red"),
     "--out with several targets": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend",
                                     "--out", "{in}/r.blend"], "--out names one file"),
@@ -334,15 +336,20 @@ def test_default_run_preview_shows_rendered_tiles(default_run):
 
 def test_run_with_the_reports_landmarks_shapes_and_export(default_run, tmp_path, head):
     """Feeding the landmarks of the automatic run back in (the report lists them in the
-    --landmarks form) gives the same landmarks; exported OBJs match the target and the keys."""
+    --landmarks form) gives the same landmarks; exported OBJs match the target and the keys;
+    --no-preview renders and writes no contact sheet."""
     cwd, _ = default_run
     automatic = json.loads((cwd / "out" / "demo_head_exclone.json").read_text())["landmarks"]
     landmarks = landmarks_file(tmp_path, automatic["source"], automatic["target"])
     result = run_cli("--shapes", "jawOpen,eyeBlink_L", "--landmarks", landmarks,
                      "--export-dir", tmp_path / "objs", "--out", tmp_path / "r.blend",
-                     cwd=tmp_path)
+                     "--no-preview", cwd=tmp_path)
     assert result.returncode == 0, result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["landmarks.json", "objs", "r.blend",
+                                                          "r.json"]
+    assert "preview" not in result.stdout
     report = json.loads((tmp_path / "r.json").read_text())
+    assert report["outputs"]["preview"] is None and "preview" not in report["timings"]
     assert report["landmarks"]["source"] == automatic["source"]
     assert report["landmarks"]["target"] == automatic["target"]
     assert report["counts"]["expressions"] == 2
@@ -367,7 +374,8 @@ def test_output_names_are_unique_per_target():
 
 def test_batch_writes_one_output_per_target_and_skips_a_bad_one(tmp_path, head):
     """A folder (two OBJs, one of them broken) plus a .blend object, two processes at once: the
-    good targets get their files, the bad one is reported, the summary lists all three."""
+    good targets get their files (no contact sheets: --no-preview reaches every target), the bad
+    one is reported, the summary lists all three."""
     folder = tmp_path / "heads"
     folder.mkdir()
     (folder / "head.obj").write_bytes(DEMO_HEAD.read_bytes())
@@ -376,7 +384,7 @@ def test_batch_writes_one_output_per_target_and_skips_a_bad_one(tmp_path, head):
     before = hashes(folder, tmp_path / "scene.blend")
     result = run_cli("--target", folder, "--target", f"{tmp_path / 'scene.blend'}:face",
                      "--jobs", "2", "--shapes", "jawOpen,eyeBlink_L", "--out-dir", "results",
-                     cwd=tmp_path)
+                     "--no-preview", cwd=tmp_path)
     assert result.returncode == 1
     lines = result.stderr.splitlines()
     assert len(lines) == 1 and lines[0].startswith(
@@ -386,10 +394,11 @@ def test_batch_writes_one_output_per_target_and_skips_a_bad_one(tmp_path, head):
 
     out = tmp_path / "results"
     assert sorted(p.name for p in out.iterdir()) == [
-        "batch_report.json", "head_exclone.blend", "head_exclone.json", "head_exclone.png",
-        "scene_face_exclone.blend", "scene_face_exclone.json", "scene_face_exclone.png"]
+        "batch_report.json", "head_exclone.blend", "head_exclone.json",
+        "scene_face_exclone.blend", "scene_face_exclone.json"]
     summary = json.loads((out / "batch_report.json").read_text())
     assert (summary["succeeded"], summary["failed"], summary["jobs"]) == (2, 1, 2)
+    assert [entry.get("preview") for entry in summary["targets"]] == [None, None, None]
     status = {Path(entry["target"]).name: entry["status"] for entry in summary["targets"]}
     assert status == {"broken.obj": "failed", "head.obj": "ok", "scene.blend:face": "ok"}
     for name in ("head_exclone.blend", "scene_face_exclone.blend"):
