@@ -48,7 +48,6 @@ from exclone_addon.blender import files, mesh_io, preview  # noqa: E402
 from exclone_addon.core import data, reports  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
-from exclone_addon.core.expression_measures import measure_clone, summary  # noqa: E402
 from exclone_addon.core.landmarks import checked_pairs  # noqa: E402
 from exclone_addon.core.mesh import PolyMesh, write_obj  # noqa: E402
 
@@ -361,21 +360,16 @@ def run(args):
                                settings=CloneSettings(), progress=_print_progress())
     timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
     timings["clone_total"] = time.perf_counter() - clock
-    clock = time.perf_counter()
-    measures = measure_clone(inputs.target.mesh, result)
-    timings["measures"] = time.perf_counter() - clock
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings)
         timings["total"] = time.perf_counter() - started
         report = build_report(args, paths, inputs, result, written, timings)
-        report["measures"] = {"summary": summary(measures), "expressions": measures}
         _write_json(outputs, paths.report, report)
         outputs.commit()
     added, replaced, skipped, exported, _ = written
     print(f"blend:   {paths.blend}\nreport:  {paths.report}"
           + (f"\npreview: {paths.preview}" if paths.preview else "")
           + (f"\nexport:  {paths.export_dir} ({len(exported)} OBJs)" if exported else ""))
-    print("measures: " + (reports.measures_clause(report["measures"]["summary"]) or "none"))
     rendered = f", preview {timings['preview']:.1f} s" if paths.preview else ""
     print(f"{inputs.target.obj.name}: "
           + reports.summary(added, replaced, skipped, timings["total"], result.quality)
