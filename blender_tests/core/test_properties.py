@@ -10,12 +10,15 @@ Meshes are built from a small description (kind, size, seed, scale), so a failin
 is one short line. Runs derandomized (the same examples every run) and writes no database.
 """
 import re
+import tempfile
 from collections import namedtuple
+from pathlib import Path
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, Phase, event, example, given, settings
 from hypothesis import strategies as st
+from hypothesis.configuration import set_hypothesis_home_dir
 from scipy.spatial import Delaunay, QhullError
 
 from exclone_addon.core import data
@@ -28,6 +31,8 @@ from exclone_addon.core.mesh import PolyMesh, checked_triangles, read_obj
 from exclone_addon.core.orientation import face_frame
 from exclone_addon.core.transfer import Transfer
 
+# hypothesis keeps caches in ./.hypothesis unless told otherwise: tests do not write into the repo
+set_hypothesis_home_dir(Path(tempfile.gettempdir()) / "exclone-hypothesis")
 SETTINGS = dict(deadline=None, derandomize=True, database=None,
                 phases=(Phase.explicit, Phase.generate, Phase.shrink),
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
