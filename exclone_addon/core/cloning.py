@@ -20,7 +20,7 @@ from . import deformation
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
 from .errors import ExCloneError
 from .landmarks import MIN_PAIRS, automatic_landmarks, checked_pairs
-from .mesh import checked_triangles, vertex_parts, welded
+from .mesh import checked_triangles, triangle_areas, vertex_parts, welded
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .surface import Surface
@@ -195,8 +195,9 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks):
         src_ids = source_weld.index[src_ids]
 
     def find(surface):
-        frame = face_frame(surface.vertices, surface.triangles, surface.search)
-        return automatic_landmarks(surface.vertices, surface.triangles, frame)
+        region = _where_the_face_is(surface)
+        frame = face_frame(region.vertices, region.triangles, region.search)
+        return automatic_landmarks(region.vertices, region.triangles, frame)
 
     # both faces at once when both are looked for (numpy and the KD-tree release the GIL);
     # the source's error, if any, is the one reported
@@ -212,6 +213,25 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks):
                            "place the landmarks by hand")
     return (np.array([src_ids[src_names.index(n)] for n in common], dtype=np.int64),
             np.array([tgt_ids[tgt_names.index(n)] for n in common], dtype=np.int64), common)
+
+
+def _where_the_face_is(surface):
+    """The Surface the face is looked for on: the connected part of the largest area and the
+    parts whose centre lies in its bounding box (eyes, teeth). A loose piece outside it (a stray
+    triangle, a prop) would otherwise set the frame's scale, symmetry and nose."""
+    labels = surface.parts[surface.triangles[:, 0]]
+    areas = np.bincount(labels, triangle_areas(surface.vertices, surface.triangles),
+                        minlength=surface.parts.max() + 1)
+    used = surface.used
+    main = used[surface.parts[used] == np.argmax(areas)]
+    low, high = surface.vertices[main].min(axis=0), surface.vertices[main].max(axis=0)
+    counts = np.bincount(surface.parts[used], minlength=len(areas))
+    centres = np.stack([np.bincount(surface.parts[used], surface.vertices[used, axis],
+                                    minlength=len(areas)) for axis in range(3)], axis=1)
+    centres /= np.maximum(counts, 1)[:, None]
+    inside = np.all((centres >= low) & (centres <= high), axis=1)
+    kept = inside[labels]
+    return surface if kept.all() else Surface(surface.vertices, surface.triangles[kept])
 
 
 def _rigid_alignment(source, target, src_lm, tgt_lm, automatic, settings):
