@@ -207,3 +207,19 @@ def test_a_linked_mesh_in_a_target_blend_is_refused_by_the_command_line(head, tm
     bpy.ops.wm.read_factory_settings(use_empty=True)
     with pytest.raises(ExCloneError, match=LINKED):
         files.load_target(f"{scene_file}:head")
+
+
+def test_keep_still_sees_a_head_split_at_a_seam_as_one_part(head):
+    """The faces right of the midline on their own copies of its vertices (an exporter's UV
+    seam): two pieces, one face. 'Keep Still' holds nothing of it still."""
+    from exclone_addon.blender import workflow
+    from exclone_addon.core.mesh import PolyMesh, vertex_parts
+    v = head.vertices
+    midline = np.flatnonzero(np.abs(v[:, 0]) < 1e-9)
+    copy_of = dict(zip(midline, len(v) + np.arange(len(midline))))
+    faces = [np.array([copy_of.get(i, i) for i in f]) if v[f, 0].mean() > 0 else f
+             for f in head.faces()]
+    split = PolyMesh.from_faces(np.vstack([v, v[midline]]), faces)
+    assert len(np.unique(vertex_parts(len(split.vertices), split.triangles()))) == 2
+    left_only = np.flatnonzero(v[:, 0] < -0.1)[:5]
+    assert not workflow.still_parts_mask(split, left_only).any()

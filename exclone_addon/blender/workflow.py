@@ -21,7 +21,7 @@ from ..core.expression_measures import measure_clone, summary
 from ..core import data
 from ..core.landmarks import checked_pairs
 from ..core.library import ExpressionLibrary, load_library
-from ..core.mesh import PolyMesh, vertex_parts
+from ..core.mesh import PolyMesh, vertex_parts, welded
 from . import landmarks as stored_landmarks
 from . import mesh_io, preferences
 
@@ -234,8 +234,11 @@ def clone_settings(context, preset, formulation):
 
 
 def still_parts_mask(target_mesh, target_landmarks):
-    """Vertices of the parts without landmarks (they keep their shape with parts='STILL')."""
-    parts = vertex_parts(len(target_mesh.vertices), target_mesh.triangles())
+    """Vertices of the parts without landmarks (they keep their shape with parts='STILL').
+    Parts of the welded mesh, as the engine sees them: pieces an exporter split at UV seams are
+    one part."""
+    joined, index = welded(target_mesh)
+    parts = vertex_parts(len(joined.vertices), joined.triangles())[index]
     return ~np.isin(parts, parts[np.asarray(target_landmarks)])
 
 
