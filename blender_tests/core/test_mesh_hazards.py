@@ -207,6 +207,19 @@ def test_a_concave_ngon_is_cut_without_folds():
         assert np.allclose(normals, normals[0]), "every triangle in the polygon's winding"
 
 
+def test_landmarks_of_a_split_or_unwelded_head_are_the_welded_ones(head):
+    """The automatic landmarks (what Auto Landmarks stores) of a head split at a seam or fully
+    unwelded: the demo head's, at one of each vertex's copies (before: "the face's profile is
+    too small to find its nose")."""
+    from exclone_addon.core.cloning import found_landmarks
+    names, ids = found_landmarks(head)
+    split, _ = split_at_midline(head)
+    assert found_landmarks(split)[0] == names and np.array_equal(found_landmarks(split)[1], ids)
+    loose, original = unwelded(head)
+    loose_names, loose_ids = found_landmarks(loose)
+    assert loose_names == names and np.array_equal(original[loose_ids], ids)
+
+
 # ------------------------------------------------------------------------------ as the target
 
 def test_target_split_at_a_seam_opens_no_crack(library, head, clean):

@@ -12,9 +12,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.errors import ExCloneError
-from ..core.landmarks import automatic_landmarks, checked_ids
+from ..core.cloning import found_landmarks
+from ..core.landmarks import checked_ids
 from ..core.mesh import checked_triangles, diagonal
-from ..core.orientation import face_frame, vertex_symmetry_plane
+from ..core.orientation import vertex_symmetry_plane
 
 IDS = "exclone_landmarks"
 AUTOMATIC_IDS = "exclone_landmarks_auto"
@@ -26,8 +27,7 @@ OFF_SURFACE = 1e-4           # a marker further than this x diagonal from its ve
 
 def detect(mesh, what="mesh"):
     """Automatic landmarks of a PolyMesh exactly as the cloning pipeline finds them: {name: id}."""
-    vertices, triangles = checked_triangles(mesh, what)
-    names, ids = automatic_landmarks(vertices, triangles, face_frame(vertices, triangles))
+    names, ids = found_landmarks(mesh, what)
     return dict(zip(names, (int(i) for i in ids)))
 
 

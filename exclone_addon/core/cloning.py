@@ -194,16 +194,11 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks):
             raise ExCloneError("the source's landmarks do not fit its mesh")
         src_ids = source_weld.index[src_ids]
 
-    def find(surface):
-        region = _where_the_face_is(surface)
-        frame = face_frame(region.vertices, region.triangles, region.search)
-        return automatic_landmarks(region.vertices, region.triangles, frame)
-
     # both faces at once when both are looked for (numpy and the KD-tree release the GIL);
     # the source's error, if any, is the one reported
     with ThreadPoolExecutor(max_workers=2) as pool:
-        src_job = pool.submit(find, source) if source_landmarks is None else None
-        tgt_job = pool.submit(find, target)
+        src_job = pool.submit(_found, source) if source_landmarks is None else None
+        tgt_job = pool.submit(_found, target)
         if src_job:
             src_names, src_ids = src_job.result()
         tgt_names, tgt_ids = tgt_job.result()
@@ -213,6 +208,21 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks):
                            "place the landmarks by hand")
     return (np.array([src_ids[src_names.index(n)] for n in common], dtype=np.int64),
             np.array([tgt_ids[tgt_names.index(n)] for n in common], dtype=np.int64), common)
+
+
+def found_landmarks(mesh, what="mesh"):
+    """The automatic landmarks of a PolyMesh as a fit finds them: (names, vertex ids in the
+    mesh's own numbering). ExCloneError if the face cannot be found."""
+    weld = _welded_surface(mesh, what)
+    names, ids = _found(weld.surface)
+    return names, weld.originals[np.asarray(ids, dtype=np.int64)]
+
+
+def _found(surface):
+    """(names, ids) of the automatic landmarks on a (welded) Surface."""
+    region = _where_the_face_is(surface)
+    frame = face_frame(region.vertices, region.triangles, region.search)
+    return automatic_landmarks(region.vertices, region.triangles, frame)
 
 
 def _where_the_face_is(surface):
