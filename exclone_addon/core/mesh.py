@@ -5,6 +5,7 @@ loop_vertices[start[p]:start[p] + loop_totals[p]]. Everything downstream works o
 `triangulate` makes, and results go back in the original vertex order (triangulation never adds
 or reorders vertices).
 """
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,44 +128,48 @@ def read_obj(path, faces=True):
     return mesh
 
 
-# Longer lines go line by line: numpy's arrays of words are as wide as the longest line.
-_BULK_LINE_LENGTH = 200
+# Lines the bulk reading takes: printable ASCII, where numpy's and Python's word splitting agree
+# (spaces and tabs only) and numpy's number parsing is Python's float()/int() (others go line
+# by line, which takes any text).
+_PLAIN_TEXT = re.compile(r"[ -~\t\n]*")
+# face lines with their a/b/c forms cut to a: "f" and signed whole numbers of up to 18 digits
+_PLAIN_FACES = re.compile(r"(?:f(?:[ \t]+[+-]?\d{1,18})*[ \t]*(?:\n|$))*")
 
 
 def _obj_in_bulk(lines, faces):
-    """read_obj's mesh with numpy converting all numbers at once (Python's float() and int()
-    rules, as line by line), or None if a line is malformed or unusual; face ids 0-based."""
-    vertex_words = _words_of(lines, "v")
-    face_words = _words_of(lines, "f") if faces else (np.zeros(0, object), np.zeros(0, np.int64))
-    if vertex_words is None or face_words is None:
+    """read_obj's mesh with numpy parsing all vertex lines at once and all face lines at once,
+    face ids 0-based; None (or ValueError) for lines it cannot read exactly as line by line."""
+    vertex_lines = [line for line in lines if line.startswith("v ")]
+    if not _PLAIN_TEXT.fullmatch("\n".join(vertex_lines)):
         return None
-    words, counts = vertex_words
-    if np.any(counts < 3):
+    vertices = (np.loadtxt(vertex_lines, usecols=(1, 2, 3), comments=None, ndmin=2)
+                if vertex_lines else np.zeros((0, 3)))
+    face_lines = [line for line in lines if line.startswith("f ")] if faces else []
+    polygons = _faces_in_bulk("\n".join(face_lines), len(face_lines))
+    if polygons is None:
         return None
-    starts = np.cumsum(counts + 1) - counts - 1
-    vertices = words[starts[:, None] + np.arange(1, 4)].astype(np.float64).reshape(-1, 3)
-    words, totals = face_words
-    ids = np.array([word.partition("/")[0] for word in words[words != "f"]], dtype=object)
-    ids = ids.astype(np.int64) if len(ids) else np.zeros(0, np.int64)
+    totals, ids = polygons
     # OBJ indices are 1-based; negatives count back from the end (out of range: read_obj says so)
-    loops = np.where(ids < 0, ids + len(vertices), ids - 1)
-    return PolyMesh(vertices, totals.astype(np.int64), loops)
+    return PolyMesh(vertices, totals, np.where(ids < 0, ids + len(vertices), ids - 1))
 
 
-def _words_of(lines, kind):
-    """(every word of the lines that start with `kind` and a space, as one object array, the
-    line's own `kind` word included; each line's word count after it) or None if the lines are
-    too long or another word is `kind` too (the count would split a line in two)."""
-    chosen = [line for line in lines if line.startswith(kind + " ")]
-    if not chosen:
-        return np.zeros(0, object), np.zeros(0, np.int64)
-    if max(map(len, chosen)) > _BULK_LINE_LENGTH:
+def _faces_in_bulk(block, count):
+    """(corners per face line, their vertex ids as written) of `count` face lines joined by
+    newlines, or None if a line is not plain (see _PLAIN_FACES)."""
+    if not count:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    if not _PLAIN_TEXT.fullmatch(block) or re.search(r"(?:^|[ \t\n])/", block):
         return None
-    words = np.array(" ".join(chosen).split(), dtype=object)
-    starts = np.flatnonzero(words == kind)
-    if len(starts) != len(chosen):
+    block = re.sub(r"/[^ \t\n]*", "", block)             # a/b/c -> a
+    if not _PLAIN_FACES.fullmatch(block):
         return None
-    return words, np.diff(np.append(starts, len(words))) - 1
+    codes = np.frombuffer(block.encode("ascii"), dtype=np.uint8)
+    blank = np.isin(codes, (ord(" "), ord("\t"), ord("\n")))
+    word_starts = ~blank & np.append(True, blank[:-1])
+    words = np.bincount(np.cumsum(codes == ord("\n"))[word_starts], minlength=count)
+    ids = np.fromstring(block.replace("f", " "), dtype=np.int64, sep=" ")
+    totals = words - 1                                   # the line's own "f" is no corner
+    return (totals, ids) if len(ids) == totals.sum() else None
 
 
 def _obj_line_by_line(path, lines, faces):
