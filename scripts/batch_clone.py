@@ -8,7 +8,9 @@
 
 With no arguments: the bundled ICT-FaceKit ARKit library onto the bundled demo head, written to
 out/demo_head_exclone.blend, .json and .png (--no-preview: no .png, and no render, which takes
-a few seconds per target).
+a few seconds per target). The .json report holds, besides timings and fit quality, each
+expression's measures (core.expression_measures: lid and lip gaps, stretch, flips, motion outside
+the face) and their summary, which the console shows on its "measures:" line.
 
 Input files are only read (see exclone_addon/blender/files.py). Every output path is checked
 before any work; the outputs are written under temporary names and moved into place together at
@@ -48,6 +50,7 @@ from exclone_addon.blender import files, mesh_io, preview  # noqa: E402
 from exclone_addon.core import data, reports  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
+from exclone_addon.core.expression_measures import measure_clone, summary  # noqa: E402
 from exclone_addon.core.landmarks import checked_pairs  # noqa: E402
 from exclone_addon.core.mesh import PolyMesh, write_obj  # noqa: E402
 
@@ -360,16 +363,21 @@ def run(args):
                                settings=CloneSettings(), progress=_print_progress())
     timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
     timings["clone_total"] = time.perf_counter() - clock
+    clock = time.perf_counter()
+    measures = measure_clone(inputs.target.mesh, result)
+    timings["measures"] = time.perf_counter() - clock
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings)
         timings["total"] = time.perf_counter() - started
         report = build_report(args, paths, inputs, result, written, timings)
+        report["measures"] = {"summary": summary(measures), "expressions": measures}
         _write_json(outputs, paths.report, report)
         outputs.commit()
     added, replaced, skipped, exported, _ = written
     print(f"blend:   {paths.blend}\nreport:  {paths.report}"
           + (f"\npreview: {paths.preview}" if paths.preview else "")
           + (f"\nexport:  {paths.export_dir} ({len(exported)} OBJs)" if exported else ""))
+    print("measures: " + (reports.measures_clause(report["measures"]["summary"]) or "none"))
     rendered = f", preview {timings['preview']:.1f} s" if paths.preview else ""
     print(f"{inputs.target.obj.name}: "
           + reports.summary(added, replaced, skipped, timings["total"], result.quality)

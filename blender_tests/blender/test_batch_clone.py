@@ -296,6 +296,8 @@ def test_default_run_writes_blend_report_and_preview(default_run, head):
     for name in ("demo_head_exclone.blend", "demo_head_exclone.json", "demo_head_exclone.png"):
         assert name in result.stdout
     assert "shape keys added" in result.stdout.splitlines()[-1]
+    assert re.search(r"^measures: blink gap L \d+% R \d+%, stretch [\d.]+x, \d+ flipped$",
+                     result.stdout, re.MULTILINE), result.stdout
 
 
 def test_default_run_blend_has_one_shape_key_per_library_expression(default_run, head):
@@ -322,6 +324,12 @@ def test_default_run_report(default_run):
     marks = report["landmarks"]
     assert len(marks["source"]) == len(marks["target"]) == len(marks["names"]) >= 4
     assert report["versions"]["blender"] == bpy.app.version_string
+    # the expression measures (core.expression_measures): every expression, and the summary
+    measures = report["measures"]
+    assert set(measures["expressions"]) == set(load_library().names) | {"jawOpen+mouthClose"}
+    assert 0 <= measures["summary"]["eyeBlink_L_gap"] < 1
+    assert measures["summary"]["eyeBlink_L_other_eye_gap"] == pytest.approx(1.0, abs=0.1)
+    assert measures["summary"]["jawOpen_lip_gap"] > 0
 
 
 def test_default_run_preview_shows_rendered_tiles(default_run):
