@@ -296,7 +296,7 @@ def test_default_run_writes_blend_report_and_preview(default_run, head):
     for name in ("demo_head_exclone.blend", "demo_head_exclone.json", "demo_head_exclone.png"):
         assert name in result.stdout
     assert "shape keys added" in result.stdout.splitlines()[-1]
-    assert re.search(r"^measures: blink gap L \d+% R \d+%, stretch [\d.]+x, \d+ flipped$",
+    assert re.search(r"^measures: blink gap L -?\d+% R -?\d+%, stretch [\d.]+x, \d+ flipped$",
                      result.stdout, re.MULTILINE), result.stdout
 
 
