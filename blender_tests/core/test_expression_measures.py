@@ -8,8 +8,9 @@ import pytest
 
 from exclone_addon.core import data, library, mesh
 from exclone_addon.core import expression_measures as em
-from exclone_addon.core.cloning import clone_expressions
+from exclone_addon.core.cloning import CloneResult, clone_expressions
 from exclone_addon.core.landmarks import automatic_landmarks
+from exclone_addon.core.mesh import PolyMesh
 from exclone_addon.core.orientation import face_frame
 from exclone_addon.core.reports import measures_clause
 from exclone_addon.core.surface import Surface
@@ -192,6 +193,27 @@ def test_demo_head_upper_lid_moved_down_by_its_middle_open_height(fraction):
     assert stations[3] == pytest.approx(1 - fraction, abs=1e-3)
     assert stations == pytest.approx(1 - fraction * lids.rest[3] / lids.rest, abs=1e-3)
     assert found["eyelid_gap_right"] == pytest.approx(1.0)
+
+
+def test_a_target_split_at_every_polygon_measures_as_the_welded_one():
+    # every polygon with vertices of its own (as some exporters write a mesh): measure_clone
+    # welds the copies as the fit does, so the lids are still found and read the same
+    vertices, triangles, names, ids = demo_head_fit_inputs()
+    head = data.demo_head()
+    lids = em._Openings(vertices, triangles, dict(zip(names, ids))).lids["eye_left"]
+    delta = np.zeros_like(vertices)
+    delta[lids.upper] = -0.5 * lids.rest.mean() * lids.opening.up
+    welded = CloneResult(["lid"], delta[None], ids, ids, names, vertices)
+    corners = head.loop_vertices
+    split = PolyMesh(head.vertices[corners], head.loop_totals, np.arange(len(corners)))
+    first_copy = np.array([np.flatnonzero(corners == i)[0] for i in ids])
+    unwelded = CloneResult(["lid"], delta[None][:, corners], ids, first_copy, names,
+                           vertices)
+    expected, found = em.measure_clone(head, welded)["lid"], em.measure_clone(split, unwelded)["lid"]
+    assert found["eyelid_gap_left"] == pytest.approx(expected["eyelid_gap_left"], abs=1e-9)
+    assert found["eyelid_gap_left_stations"] == pytest.approx(expected["eyelid_gap_left_stations"])
+    assert found["edge_stretch"] == pytest.approx(expected["edge_stretch"])
+    assert found["flipped_triangles"] == expected["flipped_triangles"]
 
 
 @lru_cache(maxsize=1)

@@ -1,19 +1,21 @@
 """Measures of cloned expressions on the target: do they read right on this face?
 (docs/method.md §13).
 
-Per expression: how far each eye's lids still stand apart (a fraction of the open height, along
-the whole lid), how far the lips stand apart (a fraction of the face's diagonal), the worst edge
-stretch, the triangles turned over, and how far anything outside the solved region moved.
+Per expression: how far each eye's lids still stand apart (a fraction of their open height at
+rest, at EYE_STATIONS along the whole lid), how much further apart the lips stand than at rest (a
+fraction of the face's diagonal), the worst edge stretch, the triangles turned over, and how far
+anything outside the solved region moved.
 
-Lids and lips are found on the rest target from its named landmarks (eye and mouth corners) and
-its surface, as two rows of margin vertices, upper and lower:
-- an opening with a hole: the open border loop around the corners, split into the half above
-  and the half below the line through its own ends (its corners);
-- an opening without a hole (a socket or a closed mouth modelled as a pocket): the fronts of the
-  folds where the skin turns back into the opening (a vertex with an edge running straight back
-  from it and none running straight forward), above and below the corners' line.
-Where neither is found the measure is None with the reason. The margins are followed by vertex
-id through every expression, so a lid that slides down reads as its vertices do.
+An eye's lids are found on the rest target from its corner landmarks and its surface. The
+candidates for its margins are the open border loop around the eye (an eye hole), split at the
+corners into the half above and the half below, and the fronts of the folds where the skin
+turns back into the opening (a vertex with an edge running straight back from it and none
+straight forward: a socket, or a lid modelled with a thickness). Of those, each lid keeps its
+visible edge: the front-most candidates (not the back of the lid, the socket, or a hole's border
+behind a thick lid), and among them the ones nearest the opening (not a crease above it). Where
+there are none the measure is None with the reason. The lids are followed by vertex id through
+every expression, so a lid that slides down reads as its vertices do. The lips are the upper and
+lower lip landmarks, which move with the lips however the mouth is modelled.
 """
 import numpy as np
 import scipy.sparse as sp
@@ -180,8 +182,8 @@ def _row_heights(opening, points, stations):
 
 
 class _Lids:
-    """An eye's upper and lower lid margins, one vertex of each per station, and the gap
-    between them at rest."""
+    """An eye's upper and lower lid edges (rows of vertices) and the gap between them at rest,
+    at each of EYE_STATIONS."""
 
     def __init__(self, vertices, triangles, inner, outer, frame):
         self.opening = _Opening(inner, outer, frame)
@@ -250,8 +252,9 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     the landmarks are on); deltas (E, n, 3); landmark_names/ids: the fit's target landmarks;
     solved_vertices: ids the transfer solved (the rest only follow). Each measures dict holds:
     eyelid_gap_left/right (max over the lid's stations of the gap / the gap at rest; 0 closed,
-    1 as at rest, < 0 the lids overlap) and their per-station lists, lip_gap (max over the
-    mouth's stations of the gap / the diagonal), edge_stretch (max deformed / rest edge length),
+    1 as at rest, < 0 the lids overlap) and their per-station lists, lip_gap (how much further
+    apart the lips stand than at rest / the diagonal), edge_stretch (max deformed / rest edge
+    length over the solved triangles' edges),
     flipped_triangles (normals turned by more than 90 degrees), motion_outside (max displacement
     outside the solved region / the diagonal), and "<measure>_reason" wherever one is None.
     """
@@ -320,14 +323,17 @@ def measure_clone(target, result, names=None, deltas=None):
     """measure_expressions of a CloneResult on its target PolyMesh: the solved region is the
     target's parts that hold its landmarks (all of it without landmarks), as in the fit.
     names, deltas: the expressions as written, if not the result's (a subset, or with parts
-    kept still)."""
-    vertices, triangles = mesh.checked_triangles(target, "target mesh")
-    surface = Surface(vertices, triangles)
-    region = surface.parts_holding(result.target_landmarks) if len(result.target_landmarks) \
-        else surface
+    kept still). Measured on the welded target (mesh.welded, as the fit): a lid or lip split at a
+    UV seam is one surface, not a border."""
     names, deltas = (result.names, result.deltas) if names is None else (names, deltas)
-    return measure_expressions(vertices, region.triangles, deltas, names,
-                               result.landmark_names, result.target_landmarks, region.used)
+    welded, index = mesh.welded(target)
+    first = np.unique(index, return_index=True)[1]     # one original of each welded vertex
+    landmarks = index[np.asarray(result.target_landmarks, dtype=np.int64)]
+    vertices, triangles = mesh.checked_triangles(welded, "target mesh")
+    surface = Surface(vertices, triangles)
+    region = surface.parts_holding(landmarks) if len(landmarks) else surface
+    return measure_expressions(vertices, region.triangles, np.asarray(deltas)[:, first], names,
+                               result.landmark_names, landmarks, region.used)
 
 
 BLINKS = {"eyeBlink_L": ("left", "right"), "eyeBlink_R": ("right", "left")}   # closes, stays open
