@@ -31,10 +31,11 @@ WHEEL_CACHE = ROOT / ".cache" / "wheels"
 # Blender's own numpy is used; these are the compiled dependencies it does not ship.
 BUNDLED_PACKAGES = ("scipy", "opencv-contrib-python-headless")
 # Packages the add-on imports only if present, with what it does without them; bundled for every
-# platform and Python that has a wheel. threadpoolctl is pure Python: one wheel serves all.
+# platform and Python that has a wheel (pinned in the requirements files like the others).
+# threadpoolctl is pure Python: one wheel serves all.
 OPTIONAL_PACKAGES = {
-    "cholespy": ("2.2.0", "the transfer factorises with SciPy's SuperLU instead (slower on large meshes)"),
-    "threadpoolctl": ("3.8.0", "the add-on leaves the BLAS thread count as it finds it"),
+    "cholespy": "the transfer factorises with SciPy's SuperLU instead (slower on large meshes)",
+    "threadpoolctl": "the add-on leaves the BLAS thread count as it finds it",
 }
 # (python version, requirements file with its pins), oldest first: a stable-ABI wheel of an older
 # Python also serves the newer one.
@@ -80,7 +81,7 @@ def read_pins(requirements):
         match = re.fullmatch(r"\s*([A-Za-z0-9_.-]+)==([^\s#;]+).*", line)
         if match:
             pins[match[1].lower()] = match[2]
-    missing = [name for name in BUNDLED_PACKAGES if name not in pins]
+    missing = [name for name in (*BUNDLED_PACKAGES, *OPTIONAL_PACKAGES) if name not in pins]
     if missing:
         raise BuildError(f"{requirements.name} has no '==' pin for {', '.join(missing)}")
     return pins
@@ -128,7 +129,7 @@ def collect_wheels(platforms):
     for platform in platforms:
         chosen = {}  # package -> wheel file name, for this platform
         for python, requirements_file in PYTHONS:
-            pins = read_pins(requirements_file) | {name: pin for name, (pin, _) in OPTIONAL_PACKAGES.items()}
+            pins = read_pins(requirements_file)
             wanted = []
             for name in (*BUNDLED_PACKAGES, *OPTIONAL_PACKAGES):
                 if name in chosen and wheel_serves_python(chosen[name], python):
@@ -166,7 +167,7 @@ def download_missing(requirements, python, platform, index):
             if name not in OPTIONAL_PACKAGES:
                 raise
             print(f"  {platform}: no {batch[0]} wheel for Python {python}; without it "
-                  f"{OPTIONAL_PACKAGES[name][1]}")
+                  f"{OPTIONAL_PACKAGES[name]}")
             continue
         for requirement, wheel in found.items():
             index[f"{requirement} {python} {platform}"] = wheel
