@@ -222,7 +222,7 @@ def _found(surface):
     """(names, ids) of the automatic landmarks on a (welded) Surface."""
     region = _where_the_face_is(surface)
     frame = face_frame(region.vertices, region.triangles, region.search)
-    return automatic_landmarks(region.vertices, region.triangles, frame)
+    return automatic_landmarks(region.vertices, region.triangles, frame, surface=region)
 
 
 def _where_the_face_is(surface):

@@ -193,8 +193,9 @@ def _not_found(what):
     return ExCloneError(f"could not find the face's {what}; place the landmarks by hand")
 
 
-def heuristic_landmarks(vertices, triangles, frame=None):
+def heuristic_landmarks(vertices, triangles, frame=None, parts=None):
     """The heuristic landmarks that exist on this mesh: {name: vertex id}.
+    parts: the vertices' connected part labels if already known (a surface.Surface's).
     Raises ExCloneError where the mesh has no surface to look for them on."""
     frame = frame or face_frame(vertices, triangles)
     q = frame.to_canonical(vertices)
@@ -204,7 +205,7 @@ def heuristic_landmarks(vertices, triangles, frame=None):
     tip = q[tip_id]
     # The skin: the part the nose tip is on. Every point snaps to it, and the eye's points are
     # looked for on it alone (eyeballs, lashes and eye occluders sit in front of the opening).
-    parts = vertex_parts(len(vertices), triangles)
+    parts = vertex_parts(len(vertices), triangles) if parts is None else parts
     skin = used[parts[used] == parts[tip_id]]
     height = np.ptp(q[used, 1])
     found = {"nose_tip": tip}   # name -> canonical position (snapped to a vertex at the end)
@@ -418,15 +419,19 @@ def checked_ids(ids, n, what):
     return ids
 
 
-def automatic_landmarks(vertices, triangles, frame=None, template=None, template_normals=None):
+def automatic_landmarks(vertices, triangles, frame=None, template=None, template_normals=None,
+                        surface=None):
     """Heuristic landmarks plus template ones: (names, vertex ids), in NAMES order.
 
     template: {name: canonical position}, template_normals: {name: canonical outward normal} of
-    the NORMAL_PLACED points; the shipped ones by default.
+    the NORMAL_PLACED points; the shipped ones by default. surface: the surface.Surface of these
+    vertices and triangles if one is prepared (its parts and outward normals are used, not
+    computed again).
     Raises ExCloneError if too few heuristic points are found to place the template.
     """
     frame = frame or face_frame(vertices, triangles)
-    found = heuristic_landmarks(vertices, triangles, frame)
+    parts = surface.parts if surface is not None else vertex_parts(len(vertices), triangles)
+    found = heuristic_landmarks(vertices, triangles, frame, parts)
     template = template if template is not None else _template()
     template_normals = template_normals if template_normals is not None else _template_normals()
     shared = [n for n in RBF_SOURCES if n in found and n in template]
@@ -440,14 +445,15 @@ def automatic_landmarks(vertices, triangles, frame=None, template=None, template
     # the linear term carries scale and shear between faces; the spline bends the rest
     rbf = RBFInterpolator(src, dst, kernel="thin_plate_spline", degree=1)
     # snap onto the parts the heuristic points are on (not eyeballs, teeth or lashes)
-    parts = vertex_parts(len(vertices), triangles)
     on_face = np.flatnonzero(np.isin(parts, parts[list(found.values())]))
     extra = [n for n in TEMPLATE_IBUG if n in template and n not in found]
     mapped = dict(zip(extra, rbf(np.array([template[n] for n in extra]))))
     by_normal = {n: mapped.pop(n) for n in NORMAL_PLACED if n in mapped and n in template_normals}
     found.update(_snap_symmetric(mapped, q, on_face))
     if by_normal:
-        normals = outward_sign(q, triangles) * vertex_normals(q, triangles)
+        # outward normals in the canonical frame (turning them agrees with recomputing them)
+        normals = surface.vertex_normals @ frame.rotation if surface is not None \
+            else outward_sign(q, triangles) * vertex_normals(q, triangles)
         found.update(_place_by_normal(by_normal, template_normals, q, normals, on_face,
                                       0.05 * frame.diagonal))
     names = [n for n in NAMES if n in found]
