@@ -14,12 +14,12 @@ import bpy
 import cv2
 import numpy as np
 import pytest
-from bpy_extras import anim_utils
 from skimage import data
 
 from exclone_addon.blender import camera_preview, live_panel, mesh_io, webcam_take
 from exclone_addon.core import capture
 from exclone_addon.core.library import load_library
+from blender_tests.helpers.animation import keyframes
 from blender_tests.helpers.layout import RecordingLayout
 from blender_tests.helpers.takes import astronaut_frame
 
@@ -103,16 +103,6 @@ def add_avatar(ict, name="avatar"):
     bpy.context.view_layer.objects.active = obj
     obj.select_set(True)
     return obj
-
-
-def keyframes(animated):
-    """{data path: [(frame, value), ...]} of an ID's action, through its slot's channel bag."""
-    animation = animated.animation_data
-    if animation is None or animation.action is None:
-        return {}
-    bag = anim_utils.action_get_channelbag_for_slot(animation.action, animation.action_slot)
-    return {curve.data_path: [tuple(point.co) for point in curve.keyframe_points]
-            for curve in bag.fcurves} if bag is not None else {}
 
 
 def key_values(obj):

@@ -12,12 +12,12 @@ import math
 import bpy
 import numpy as np
 import pytest
-from bpy_extras import anim_utils
 from mathutils import Vector
 
 from exclone_addon.blender import live_panel, webcam_take
 from exclone_addon.core.library import ARKIT_BLENDSHAPES
 from exclone_addon.core.livelink_csv import HEADER, LiveLinkTake, read_take_csv, write_take_csv
+from blender_tests.helpers.animation import keyframes
 from blender_tests.helpers.layout import RecordingLayout
 
 ARKIT_KEYS = ["jawOpen", "eyeBlink_L", "browInnerUp_L", "browInnerUp_R"]
@@ -43,16 +43,6 @@ def add_avatar(name="face", keys=ARKIT_KEYS + ["smile"]):
 
 def set_fps(fps):
     bpy.context.scene.render.fps, bpy.context.scene.render.fps_base = fps, 1.0
-
-
-def keyframes(animated):
-    """{data path: [(frame, value), ...]} of an ID's action, through its slot's channel bag."""
-    animation = animated.animation_data
-    if animation is None or animation.action is None:
-        return {}
-    bag = anim_utils.action_get_channelbag_for_slot(animation.action, animation.action_slot)
-    return {curve.data_path: [tuple(point.co) for point in curve.keyframe_points]
-            for curve in bag.fcurves} if bag is not None else {}
 
 
 def key_curve(obj, name):

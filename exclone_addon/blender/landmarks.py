@@ -11,11 +11,12 @@ import bpy
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..core.errors import ExCloneError
 from ..core.cloning import found_landmarks
+from ..core.errors import ExCloneError
 from ..core.landmarks import checked_ids
 from ..core.mesh import checked_triangles, diagonal
 from ..core.orientation import vertex_symmetry_plane
+from ..core.reports import listed
 
 IDS = "exclone_landmarks"
 AUTOMATIC_IDS = "exclone_landmarks_auto"
@@ -111,9 +112,8 @@ def checked(obj, role):
              if name in landmarks and np.linalg.norm(np.array(marker.location)
                                                      - vertices[landmarks[name]]) > tolerance]
     if moved:
-        shown = ", ".join(moved[:4]) + (", ..." if len(moved) > 4 else "")
         raise ExCloneError(f"{len(moved)} landmark marker(s) of {role} '{obj.name}' were moved off "
-                           f"their vertex ({shown}): press Snap Landmarks first")
+                           f"their vertex ({listed(moved)}): press Snap Landmarks first")
     return landmarks
 
 

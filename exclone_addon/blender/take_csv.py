@@ -13,19 +13,20 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, StringProperty
 from bpy_extras.io_utils import ExportHelper, ImportHelper
 
 from ..core import livelink_csv
-from ..core.errors import ExCloneError, user_message
+from ..core.errors import ExCloneError
+from ..core.reports import listed
 from . import webcam_take
 from .avatar_rig import checked_avatar
 from .head_motion import HeadTarget, head_holder
 from .live_operators import poll_avatar, poll_no_take
 from .properties import HEAD_TARGET_ITEMS
+from .reporting import reporting
 
 FRAME_RANGE_ITEMS = [
     ("SCENE", "Scene Range", "The scene's start to end frame"),
     ("TAKE", "Last Take", "The frames the last recorded webcam take keyed on this avatar"),
     ("KEYED", "Keyed Frames", "The avatar's first to last shape-key keyframe"),
 ]
-LISTED = 4          # names a report lists before "..."
 
 
 def arkit_keys(obj):
@@ -41,10 +42,6 @@ def arkit_keys(obj):
 
 def scene_fps(scene):
     return scene.render.fps / scene.render.fps_base
-
-
-def listed(names):
-    return ", ".join(names[:LISTED]) + (", ..." if len(names) > LISTED else "")
 
 
 def _poll_arkit_avatar(cls, context):
@@ -139,13 +136,11 @@ class EXCLONE_OT_import_take_csv(bpy.types.Operator, ImportHelper):
     def poll(cls, context):
         return _poll_arkit_avatar(cls, context)
 
+    @reporting
     def execute(self, context):
-        try:
-            text = import_take(context, self.filepath, self.frame_rate, self.head_target,
-                               self.armature, self.bone)
-        except Exception as exc:    # nothing is keyed before the file and the avatar are checked
-            self.report({'ERROR'}, user_message(exc))
-            return {'CANCELLED'}
+        # nothing is keyed before the file and the avatar are checked
+        text = import_take(context, self.filepath, self.frame_rate, self.head_target,
+                           self.armature, self.bone)
         self.report({'INFO'}, text)
         return {'FINISHED'}
 
@@ -234,12 +229,10 @@ class EXCLONE_OT_export_take_csv(bpy.types.Operator, ExportHelper):
     def poll(cls, context):
         return _poll_arkit_avatar(cls, context)
 
+    @reporting
     def execute(self, context):
-        try:
-            text = export_take(context, self.filepath, self.frame_range, self.overwrite)
-        except Exception as exc:    # nothing is written before the avatar and the path are checked
-            self.report({'ERROR'}, user_message(exc))
-            return {'CANCELLED'}
+        # nothing is written before the avatar and the path are checked
+        text = export_take(context, self.filepath, self.frame_range, self.overwrite)
         self.report({'INFO'}, text)
         return {'FINISHED'}
 

@@ -23,6 +23,7 @@ from .landmarks import MIN_PAIRS, automatic_landmarks, checked_pairs
 from .mesh import checked_triangles, triangle_areas, vertex_parts, welded
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
+from .reports import listed
 from .surface import Surface
 from .threads import limited_threads
 from .transfer import Transfer
@@ -377,11 +378,9 @@ def _checked_deltas(source_deltas, names, source_weld):
     return welded_deltas
 
 
-def _listed(names, mask, most=5):
-    """The names where mask is True, at most `most` of them, for a message."""
-    chosen = [str(name) for name, bad in zip(names, mask) if bad]
-    more = f" and {len(chosen) - most} more" if len(chosen) > most else ""
-    return ", ".join(chosen[:most]) + more
+def _listed(names, mask):
+    """The names where mask is True, for a message."""
+    return listed([name for name, bad in zip(names, mask) if bad], most=5)
 
 
 @limited_threads

@@ -1,6 +1,12 @@
 """The one-line reports a user reads after cloning (operator reports, command-line output)."""
 
 
+def listed(names, most=4):
+    """The first `most` names for a message, "..." if there are more."""
+    names = [str(name) for name in names]
+    return ", ".join(names[:most]) + (", ..." if len(names) > most else "")
+
+
 def fit_error(quality):
     """"fit error 0.2%" from a clone's quality dict, or "" if it has no registration error."""
     fit = quality.get("registration_mean_distance_rel")
@@ -13,8 +19,7 @@ def summary(added, replaced, skipped, seconds, quality):
     if replaced:
         parts.append(f"{len(replaced)} replaced")
     if skipped:
-        shown = ", ".join(skipped[:3]) + (", ..." if len(skipped) > 3 else "")
-        parts.append(f"{len(skipped)} skipped (already exist: {shown})")
+        parts.append(f"{len(skipped)} skipped (already exist: {listed(skipped, most=3)})")
     text = ", ".join(parts) + f" in {seconds:.1f} s"
     fit = fit_error(quality)
     return f"{text}, {fit}" if fit else text
