@@ -183,7 +183,7 @@ def test_obj_folder_reads_only_the_expressions_vertices(tmp_path):
     neutral = read_obj(DATA / "demo_head.obj")
     shutil.copy(DATA / "demo_head.obj", tmp_path / "neutral.obj")
     moved = neutral.vertices + 0.01
-    (tmp_path / "up.obj").write_text("".join(f"v {x!r} {y!r} {z!r}\n" for x, y, z in moved)
+    (tmp_path / "up.obj").write_text("".join(f"v {float(x)!r} {float(y)!r} {float(z)!r}\n" for x, y, z in moved)
                                      + "f 1 2 99999\n")
     lib = load_obj_folder(tmp_path)
     np.testing.assert_array_equal(lib.deltas[0], moved - neutral.vertices)

@@ -268,7 +268,7 @@ def _timecode_fields(path, codes):
         & (clock == np.floor(clock)).all(axis=1) & (clock[:, 1:] < 60).all(axis=1)
     bad = np.flatnonzero(~valid)
     if len(bad):
-        raise ExCloneError(f"{path.name}, line {bad[0] + 2}: timecode {codes[bad[0]]!r} is not "
+        raise ExCloneError(f"{path.name}, line {bad[0] + 2}: timecode {str(codes[bad[0]])!r} is not "
                            "HH:MM:SS:FF.fff")
     return clock @ np.array([3600.0, 60.0, 1.0]), fields[:, 3]
 

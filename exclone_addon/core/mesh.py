@@ -77,7 +77,8 @@ def _ears(points):
     axis_u = np.cross(normal, np.eye(3)[np.argmin(np.abs(normal))])
     axis_v = np.cross(normal, axis_u)
     flat = points @ np.stack([axis_u, axis_v], axis=1)
-    sign = 1.0 if np.cross(flat, np.roll(flat, -1, axis=0)).sum() >= 0 else -1.0
+    # the winding in that plane: the sign of the shoelace area (numpy 2 has no 2-D np.cross)
+    sign = 1.0 if _turn(np.zeros(2), flat, np.roll(flat, -1, axis=0)).sum() >= 0 else -1.0
     left, ears = list(range(len(points))), []
     while len(left) > 3:
         ear = next((j for j in range(len(left)) if _is_ear(flat, left, j, sign)), None)
