@@ -10,23 +10,14 @@ from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, St
 
 from ..core import capture
 from ..core.camera_calibration import calibrate_camera
-from ..core.errors import ExCloneError
 from . import camera_preview, webcam_take
 from .avatar_rig import checked_avatar
-from .reporting import failed, reporting
 from .properties import HEAD_TARGET_ITEMS, KEY_SET_ITEMS, WEBCAM_SOURCE_ITEMS
+from .reporting import failed, in_object_mode, passes, reporting
 
 
 def poll_avatar(cls, context):
-    if context.mode != 'OBJECT':
-        cls.poll_message_set("Switch to Object Mode first")
-        return False
-    try:
-        checked_avatar(context.active_object)
-    except ExCloneError as exc:
-        cls.poll_message_set(str(exc))
-        return False
-    return True
+    return in_object_mode(cls, context) and passes(cls, checked_avatar, context.active_object)
 
 
 def poll_no_take(cls):

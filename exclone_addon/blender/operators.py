@@ -17,8 +17,8 @@ from ..core.mesh import PolyMesh
 from ..core.reports import measures_clause, summary
 from . import landmarks as stored_landmarks
 from . import mesh_io, workflow
-from .reporting import failed, reporting
 from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
+from .reporting import failed, in_object_mode, reporting
 
 PREVIEW_TAG = "exclone_preview"
 PREVIEW_NAME = "ExClone registration preview"
@@ -26,8 +26,7 @@ PREVIEW_NAME = "ExClone registration preview"
 
 def _poll_target(cls, context):
     """Object Mode and a mesh target, else False with the reason as the button's tooltip."""
-    if context.mode != 'OBJECT':
-        cls.poll_message_set("Switch to Object Mode first")
+    if not in_object_mode(cls, context):
         return False
     target = workflow.target_object(context)
     if target is None:
@@ -377,8 +376,7 @@ class _LandmarkEdit:
 
     @classmethod
     def poll(cls, context):
-        if context.mode != 'OBJECT':
-            cls.poll_message_set("Switch to Object Mode first")
+        if not in_object_mode(cls, context):
             return False
         if not any(stored_landmarks.IDS in obj for obj in _landmark_objects(context)):
             cls.poll_message_set("The source and target have no landmarks: run Auto Landmarks")

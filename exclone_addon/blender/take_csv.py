@@ -20,7 +20,7 @@ from .avatar_rig import checked_avatar
 from .head_motion import HeadTarget, head_holder
 from .live_operators import poll_avatar, poll_no_take
 from .properties import HEAD_TARGET_ITEMS
-from .reporting import reporting
+from .reporting import passes, reporting
 
 FRAME_RANGE_ITEMS = [
     ("SCENE", "Scene Range", "The scene's start to end frame"),
@@ -45,14 +45,8 @@ def scene_fps(scene):
 
 
 def _poll_arkit_avatar(cls, context):
-    if not (poll_no_take(cls) and poll_avatar(cls, context)):
-        return False
-    try:
-        arkit_keys(context.active_object)
-    except ExCloneError as exc:
-        cls.poll_message_set(str(exc))
-        return False
-    return True
+    return (poll_no_take(cls) and poll_avatar(cls, context)
+            and passes(cls, arkit_keys, context.active_object))
 
 
 # -- import ---------------------------------------------------------------------------------------
