@@ -14,7 +14,7 @@ from bpy.props import BoolProperty, EnumProperty, StringProperty
 from ..core.errors import ExCloneError
 from ..core.library import arkit_blendshapes
 from ..core.mesh import PolyMesh
-from ..core.reports import measures_clause, summary
+from ..core.reports import fit_error, measures_clause, summary
 from . import landmarks as stored_landmarks
 from . import mesh_io, workflow
 from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
@@ -301,7 +301,7 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
                 preview.hide_render = True
             seconds = time.perf_counter() - started
             self.report({'INFO'}, f"Registered {source.description} onto '{target.name}': "
-                                  f"{workflow.fit_text(run.result)} of the target's size, "
+                                  f"{fit_error(run.result.quality)} of the target's size, "
                                   f"{len(run.result.target_landmarks)} {run.landmark_kind} "
                                   "landmarks, " + (f"cached result ({seconds:.1f} s)"
                                                    if run.cached else f"{seconds:.1f} s"))

@@ -256,11 +256,6 @@ def measure(target_name, target_mesh, result, names, deltas):
     return found
 
 
-def fit_text(result):
-    fit = result.quality.get("registration_mean_distance_rel")
-    return "" if fit is None else f"fit error {100 * fit:.2g}%"
-
-
 class EngineJob:
     """run_engine in a worker thread, so that the UI stays responsive and Esc can stop it.
 
