@@ -14,6 +14,7 @@ from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
 from exclone_addon.core import data, deformation, transfer
+from exclone_addon.core import mesh as mesh_module
 from exclone_addon.core.cloning import fit_faces, transfer_expressions
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
@@ -236,6 +237,98 @@ def test_transfer_ignores_gradients_of_uncovered_triangles(head):
     gradients = deformation.full_gradients(v, (1.5 * v)[None], tris)
     d = transfer(gradients, np.full((1, 3, 3), [0.0, 0.0, 0.2]), np.array([0, 1, 2]))
     np.testing.assert_allclose(d[0], np.broadcast_to([0.0, 0.0, 0.2], v.shape), atol=1e-9)
+
+
+def grid(count):
+    """A flat (count x count)-vertex grid on the unit square, two triangles per cell."""
+    x, y = np.meshgrid(np.linspace(0.0, 1.0, count), np.linspace(0.0, 1.0, count), indexing="ij")
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], axis=1)
+    ids = np.arange(count * count).reshape(count, count)
+    a, b, c, d = ids[:-1, :-1].ravel(), ids[1:, :-1].ravel(), ids[1:, 1:].ravel(), ids[:-1, 1:].ravel()
+    return vertices, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_fixed_vertices_stay_exactly_still_in_every_expression(head, affine, formulation):
+    v, tris = head
+    a, t = affine
+    shapes = np.stack([v @ a.T + t - v, np.broadcast_to([0.3, -0.1, 0.2], v.shape), 0.4 * v])
+    gradients = deformation.full_gradients(v, v + shapes, tris)
+    fixed = np.arange(5, len(v), 37)
+    system = Transfer(v, tris, np.ones(len(tris)), formulation, fixed=fixed)
+    anchors = np.arange(0, len(v), 61)
+    d = system(gradients, shapes[:, anchors], anchors)
+    assert np.all(d[:, fixed] == 0.0)
+    assert np.abs(d[[0, 2]]).max() > 1e-2 * np.abs(shapes).max()      # the rest still moves
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_an_affine_map_about_a_fixed_vertex_is_that_map(head, affine, formulation):
+    """A linear map about vertex p keeps p in place: holding p gives the map itself, on p's
+    connected part, with p exactly still."""
+    v, tris = head
+    a, _ = affine
+    p = int(tris[0, 0])
+    shape = (v - v[p]) @ a.T + v[p] - v
+    gradients = deformation.full_gradients(v, (v + shape)[None], tris)
+    system = Transfer(v, tris, np.ones(len(tris)), formulation, fixed=[p])
+    d = system(gradients)[0]
+    part = system.parts == system.parts[p]
+    assert np.all(d[p] == 0.0)
+    assert np.abs(d[part] - shape[part]).max() < 1e-5 * np.abs(shape).max()
+
+
+def test_a_part_holding_fixed_vertices_is_not_re_translated(head):
+    """A translation's gradients are the identity: with a vertex of the part held, the anchors
+    (which say 'move by the shift') must not move the part away from its fixed vertex."""
+    v, tris = head
+    shift = np.array([0.3, -0.7, 0.2])
+    gradients = deformation.full_gradients(v, (v + shift)[None], tris)
+    anchors = np.arange(0, len(v), 50)
+    system = Transfer(v, tris, np.ones(len(tris)), deformation.REDUCED, fixed=[int(tris[0, 0])])
+    d = system(gradients, np.broadcast_to(shift, (1, len(anchors), 3)), anchors)
+    part = system.parts == system.parts[tris[0, 0]]
+    assert np.abs(d[0, part]).max() < 1e-9 * np.abs(shift).max()
+
+
+@pytest.mark.parametrize("formulation", FORMULATIONS)
+def test_a_bump_with_its_border_held_is_transferred_smoothly_with_the_border_still(formulation):
+    """The gradients of a smooth bump that leaves the border of a flat grid in place, with that
+    border fixed and no anchors: the solution is the bump itself (smooth, no step at the border)
+    and the border does not move at all."""
+    vertices, triangles = grid(31)
+    x, y = vertices[:, 0], vertices[:, 1]
+    bump = np.zeros_like(vertices)
+    bump[:, 2] = 0.2 * np.sin(np.pi * x) * np.sin(np.pi * y)
+    bump[:, 0] = 0.05 * np.sin(np.pi * x) ** 2 * np.sin(np.pi * y)
+    border = np.flatnonzero((x == 0) | (x == 1) | (y == 0) | (y == 1))
+    gradients = deformation.full_gradients(vertices, (vertices + bump)[None], triangles)
+    system = Transfer(vertices, triangles, np.ones(len(triangles)), formulation, fixed=border)
+    d = system(gradients)[0]
+    assert np.all(d[border] == 0.0)
+    assert np.abs(d - bump).max() < 1e-3 * np.abs(bump).max()
+
+
+def test_fixed_vertex_ids_outside_the_mesh_are_refused(head):
+    v, tris = head
+    with pytest.raises(ExCloneError, match="fixed vertex ids"):
+        Transfer(v, tris, np.ones(len(tris)), fixed=[len(v)])
+
+
+def test_a_fits_fixed_vertices_stay_still_in_the_clone():
+    """FaceFit.fixed_vertices (welded numbering) reach the transfer: the demo head's open border
+    (its neck cut) is held, every copy of those vertices stays exactly where it is, the face
+    still moves."""
+    library = load_library()
+    fit = fit_faces(library.mesh, data.demo_head(), source_landmarks=library.automatic_landmarks)
+    border = mesh_module.boundary_vertices(fit.target_region.triangles)
+    held = dataclasses.replace(fit, fixed_vertices=border, _transfer=None)
+    free, fixed = (transfer_expressions(f, library.deltas[:8], list(library.names[:8])).deltas
+                   for f in (fit, held))
+    own = np.isin(fit.welded_target.index, border)
+    assert own.any() and np.all(fixed[:, own] == 0.0)
+    assert np.abs(free[:, own]).max() > 0
+    assert np.abs(fixed).max() > 0.5 * np.abs(free).max()
 
 
 def test_cholesky_and_superlu_give_the_same_clone_of_the_library_on_the_demo_head(monkeypatch):

@@ -79,6 +79,9 @@ class FaceFit:
     registered_source: np.ndarray     # (n_source, 3) in the source's own numbering
     timings: dict = field(default_factory=dict)
     quality: dict = field(default_factory=dict)
+    # (k,) target vertices held at exactly zero displacement, welded numbering (e.g. the cut
+    # border of a head cut out of a body); set before the first transfer
+    fixed_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     _transfer: object = None          # the factorised system, made on the first transfer
 
 
@@ -410,9 +413,10 @@ def _transferred(fit, deltas):
     wanted = _wanted_gradients(fit, aligned_deltas, rest_at, moves_at)
     if fit._transfer is None:
         fit._transfer = Transfer(fit.target_region.vertices, fit.target_region.triangles,
-                                 fit.weights, fit.formulation)
+                                 fit.weights, fit.formulation, fit.fixed_vertices)
     result = fit._transfer(wanted, moves_at[:, anchors], anchors)
     _follow_unsolved(result, fit.target_region, fit.welded_target.mesh.triangles())
+    result[:, fit._transfer.fixed] = 0.0       # also where a fixed vertex was left to follow
     if not np.all(np.isfinite(result)):
         raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
     return result

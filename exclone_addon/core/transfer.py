@@ -82,8 +82,11 @@ def _no_unique_solution():
 
 class Transfer:
     def __init__(self, target_vertices, target_triangles, weights,
-                 formulation=deformation.REDUCED):
-        """weights: (T,) per target triangle; 0 marks a triangle with no source gradient."""
+                 formulation=deformation.REDUCED, fixed=()):
+        """weights: (T,) per target triangle; 0 marks a triangle with no source gradient.
+        fixed: (k,) target vertex ids held at exactly zero displacement (e.g. the cut border of
+        a head cut out of a body): their unknowns are eliminated from the normal equations, and
+        a connected part holding any of them is not re-translated afterwards."""
         self.n = len(target_vertices)
         self.grad, _ = deformation.gradient_operator(target_vertices, target_triangles, formulation)
         self.rest = deformation.unknowns_of(target_vertices, target_triangles, formulation)
@@ -91,8 +94,12 @@ class Transfer:
         self.uncovered_rows = np.repeat(self.uncovered, 3)          # their rows in G's layout
         self.identity_blocks = np.tile(np.eye(3), (int(self.uncovered.sum()), 1))
         self.row_weight = np.where(self.uncovered, 1.0, weights)
+        self.fixed = _checked_fixed(fixed, self.n)
+        self.free = np.ones(self.grad.shape[1], dtype=bool)
+        self.free[self.fixed] = False
         w_rows = sp.diags(np.repeat(self.row_weight, 3))
         normal = (self.grad.T @ w_rows @ self.grad).tocsc()
+        normal = normal[self.free][:, self.free]       # Dirichlet: fixed unknowns are 0
         # a whisper of regularisation keeps the per-part translations definite; they are set
         # explicitly afterwards (see module docstring)
         eps = 1e-10 * normal.diagonal().mean()
@@ -120,7 +127,8 @@ class Transfer:
         residual -= self.rest_gradients
         residual *= np.repeat(self.row_weight, 3)[:, None]
         rhs = self.grad.T @ residual.transpose(1, 0, 2).reshape(-1, e * 3)     # (N, 3E)
-        solution = self.solve(rhs)
+        solution = np.zeros_like(rhs)
+        solution[self.free] = self.solve(rhs[self.free])
         d = solution.reshape(-1, e, 3).transpose(1, 0, 2)[:, : self.n]         # (E, n, 3)
         return self._anchor(d, anchor_displacements, anchor_vertices)
 
@@ -137,4 +145,14 @@ class Transfer:
                                        for c in range(3)], 1) for k in range(len(d))])
             anchored = n_anchor > 0
             shift[:, anchored] = sums[:, anchored] / n_anchor[anchored, None]
+        shift[:, np.unique(parts[self.fixed])] = 0.0     # held by their fixed vertices
         return d + shift[:, parts]
+
+
+def _checked_fixed(fixed, n_vertices):
+    """The fixed vertex ids as a sorted unique int array, or ExCloneError if one is no vertex."""
+    fixed = np.unique(np.asarray(fixed, dtype=np.int64).ravel())
+    if len(fixed) and (fixed[0] < 0 or fixed[-1] >= n_vertices):
+        raise ExCloneError(f"fixed vertex ids must lie in [0, {n_vertices}); got "
+                           f"{fixed[0]}..{fixed[-1]}")
+    return fixed
