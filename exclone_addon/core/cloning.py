@@ -106,20 +106,26 @@ class Welded:
 
 @limited_threads
 def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings=None,
-              progress=None):
+              progress=None, face_guide=None, fixed_vertices=None):
     """Landmarks, registration and correspondence of source onto target (PolyMesh each).
 
     landmarks: None for automatic ones, or {"source": ids, "target": ids} (same length; hard).
     source_landmarks: with automatic landmarks, the source's found before as (names, ids) (the
     bundled library ships its own): only the target's are looked for.
     progress: optional callable(fraction, message); it may raise core.errors.Cancelled.
+    face_guide: the target's face as found in images (core.character.FaceGuide, in the target's
+    coordinates): the automatic landmarks use its frame and are cross-checked with its points.
+    fixed_vertices: (k,) target vertex ids (its own numbering) every transfer holds still, e.g.
+    the cut of a head taken out of a body (core.character.HeadCut.fixed).
     Raises ExCloneError with a user-facing message on bad input.
     """
     return _fit(_welded_surface(source, "source mesh"), target, landmarks, source_landmarks,
-                _checked_settings(settings), _progress_span(progress, 0.0, 1.0))
+                _checked_settings(settings), _progress_span(progress, 0.0, 1.0), face_guide,
+                fixed_vertices)
 
 
-def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report):
+def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report,
+         face_guide=None, fixed_vertices=None):
     """fit_faces on the welded source (Welded, whole mesh); report(fraction, message) or a
     no-op."""
     stopwatch = _Stopwatch()
@@ -127,7 +133,7 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
     source, target = source_weld.surface, target_weld.surface
     report(0.0, "landmarks")
     src_lm, tgt_lm, landmark_names = _landmarks(source_weld, target_weld, landmarks,
-                                                source_landmarks)
+                                                source_landmarks, face_guide)
     stopwatch.lap("landmarks")
 
     report(0.2, "registration")
@@ -154,7 +160,8 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
         registered_source=reg.vertices[source_weld.index],
         timings=stopwatch.timings,
         quality={**_registration_quality(reg, target_region.diagonal, len(src_lm)),
-                 **_correspondence_quality(mapped, weights, scale, target_region.diagonal)})
+                 **_correspondence_quality(mapped, weights, scale, target_region.diagonal)},
+        fixed_vertices=_welded_ids(target_weld, fixed_vertices))
 
 
 def _checked_settings(settings):
@@ -183,9 +190,20 @@ def _welded_surface(mesh, what):
     return Welded(Surface(*checked_triangles(welded_mesh, what)), welded_mesh, index)
 
 
-def _landmarks(source_weld, target_weld, landmarks, source_landmarks):
+def _welded_ids(weld, ids):
+    """(k,) unique welded ids of a mesh's own vertex ids (None: none); ExCloneError if any is
+    not a vertex of it."""
+    if ids is None:
+        return np.zeros(0, dtype=np.int64)
+    ids = np.asarray(ids, dtype=np.int64).ravel()
+    if len(ids) and (ids.min() < 0 or ids.max() >= weld.own_count()):
+        raise ExCloneError(f"a fixed vertex id is outside 0..{weld.own_count() - 1}")
+    return np.unique(weld.index[ids])
+
+
+def _landmarks(source_weld, target_weld, landmarks, source_landmarks, face_guide=None):
     """(source ids, target ids, names) in the welded numbering: the given pairs (the meshes'
-    own ids), checked, or automatic ones."""
+    own ids), checked, or automatic ones (on the target with face_guide's help, if given)."""
     source, target = source_weld.surface, target_weld.surface
     if landmarks is not None:
         src_lm, tgt_lm = checked_pairs(landmarks, source_weld.own_count(), target_weld.own_count())
@@ -202,7 +220,7 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks):
     # the source's error, if any, is the one reported
     with ThreadPoolExecutor(max_workers=2) as pool:
         src_job = pool.submit(_found, source) if source_landmarks is None else None
-        tgt_job = pool.submit(_found, target)
+        tgt_job = pool.submit(_found, target, face_guide)
         if src_job:
             src_names, src_ids = src_job.result()
         tgt_names, tgt_ids = tgt_job.result()
@@ -222,11 +240,33 @@ def found_landmarks(mesh, what="mesh"):
     return names, weld.originals[np.asarray(ids, dtype=np.int64)]
 
 
-def _found(surface):
-    """(names, ids) of the automatic landmarks on a (welded) Surface."""
-    region = _where_the_face_is(surface)
-    frame = face_frame(region.vertices, region.triangles, region.search)
-    return automatic_landmarks(region.vertices, region.triangles, frame, surface=region)
+def _found(surface, face_guide=None):
+    """(names, ids) of the automatic landmarks on a (welded) Surface. With a face_guide (the
+    face found in images) the surface is the head region already, the guide's frame is used, and
+    its FaceMesh points check the geometric landmarks and stand in for those not found."""
+    if face_guide is None:
+        region = _where_the_face_is(surface)
+        frame = face_frame(region.vertices, region.triangles, region.search)
+        return automatic_landmarks(region.vertices, region.triangles, frame, surface=region)
+    try:
+        names, ids = automatic_landmarks(surface.vertices, surface.triangles, face_guide.frame,
+                                         surface=surface)
+    except ExCloneError:          # too few found by geometry: FaceMesh's points stand in
+        names, ids = [], np.zeros(0, dtype=np.int64)
+    return face_guide.cross_checked(names, ids, surface.vertices, _skin(surface, face_guide))
+
+
+def _skin(surface, face_guide):
+    """(k,) the vertices of the surface's part nearest to the guide's nose tip (else its
+    largest part): where landmarks go, not an eyeball or the teeth."""
+    used = surface.used
+    tip = face_guide.points.get("nose_tip")
+    if tip is None:
+        part = np.argmax(np.bincount(surface.parts[used]))
+    else:
+        part = surface.parts[used[np.argmin(np.linalg.norm(surface.vertices[used] - tip,
+                                                            axis=1))]]
+    return used[surface.parts[used] == part]
 
 
 def _where_the_face_is(surface):
@@ -459,18 +499,19 @@ def _wanted_gradients(fit, aligned_deltas, rest_at, moves_at):
 
 @limited_threads
 def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
-                      source_landmarks=None, settings=None, progress=None):
+                      source_landmarks=None, settings=None, progress=None, face_guide=None,
+                      fixed_vertices=None):
     """Clone every source expression onto the target: fit_faces, then transfer_expressions.
 
     source, target: PolyMesh. source_deltas: (E, n_source, 3). names: E strings.
-    landmarks, source_landmarks, progress: as fit_faces.
+    landmarks, source_landmarks, progress, face_guide, fixed_vertices: as fit_faces.
     Raises ExCloneError with a user-facing message on bad input.
     """
     settings = _checked_settings(settings)
     source_weld = _welded_surface(source, "source mesh")
     _checked_deltas(source_deltas, names, source_weld)   # before the long part
     fit = _fit(source_weld, target, landmarks, source_landmarks, settings,
-               _progress_span(progress, 0.0, 0.8))
+               _progress_span(progress, 0.0, 0.8), face_guide, fixed_vertices)
     if progress:
         progress(0.8, "transfer")
     result = transfer_expressions(fit, source_deltas, names)
