@@ -1,0 +1,282 @@
+"""Finding the face on any mesh by rendering it and running the face models on the renders
+(docs/method.md §4).
+
+Works for a head or a whole character (its objects' world-space meshes concatenated), in any
+orientation and units:
+1. Search: orthographic renders of the whole mesh along the 6 axis directions and the 8 cube
+   diagonals (a face turned anywhere is within 35 degrees of one of them), each turned by 4 rolls of
+   90 degrees; BlazeFace runs on the whole image and on a close crop of the silhouette's top (on a
+   whole-body view the face is a few dozen pixels: the detector needs it closer).
+2. Check and refine the best detections: FaceMesh on the view, its points back onto the surface
+   through the render's triangle-id buffer, a frame from them (the rotation that lays MediaPipe's
+   canonical face onto them), then a close render straight at the face along that frame, detected
+   and landmarked again (twice). Detector scores alone prove nothing (views without a face still
+   score up to ~0.7): a face is accepted on FaceMesh's presence and a re-detection on the close
+   render, both high.
+3. The result: the 468 FaceMesh points on the surface (and their triangles), the face's axes and
+   its eye distance.
+"""
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from . import data, face_models
+from .errors import ExCloneError
+from .face_render import Camera, render
+from .mesh import PolyMesh, vertex_normals, vertex_parts, welded
+
+RENDER_SIZE = 512
+# Whole-mesh views: the 6 axis directions and the 8 cube diagonals.
+SEARCH_DIRECTIONS = np.vstack([np.eye(3), -np.eye(3),
+                               np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
+                               / np.sqrt(3.0)])
+# Share of the silhouette's height taken as the close crop of its top: a standing body's head
+# and neck (a body is ~7.5 heads tall), upright in one of the four rolls.
+TOP_CROP = 0.25
+# Detections (of the search) refined before giving up; they are tried best first.
+CANDIDATES = 4
+REFINEMENTS = 2
+# Acceptance: FaceMesh's presence on the close render and BlazeFace's score there.
+MIN_PRESENCE = 0.9
+MIN_REDETECTION = 0.85
+# The close render is this many face heights (forehead 10 to chin 152) across.
+CLOSE_VIEW_FACES = 1.8
+# FaceMesh points used for the frame and the sizes.
+FOREHEAD, CHIN, NOSE_TIP = 10, 152, 1
+EYE_CORNERS_RIGHT, EYE_CORNERS_LEFT = (33, 133), (263, 362)   # the character's right, left
+NOT_FOUND = ("no face found on the mesh; select the head object, apply its rotation "
+             "(Object > Apply > Rotation & Scale), or place the landmarks by hand")
+
+
+@dataclass(frozen=True)
+class FoundFace:
+    """A face found on a mesh, in the mesh's (world) space.
+
+    right, up, forward: the face's own axes, a right-handed frame (the canonical frame of
+    docs/method.md §3: right is the viewer's right looking at the face, i.e. the character's
+    left; forward points out of the face)."""
+    points: np.ndarray     # (468, 3) FaceMesh points on the surface, NaN where one missed
+    triangle: np.ndarray   # (468,) the triangle each point lies on, -1 where it missed
+    right: np.ndarray
+    up: np.ndarray
+    forward: np.ndarray
+    eye_distance: float    # between the eye centres (mid-corners), on the surface
+    face_height: float     # forehead (10) to chin (152), on the surface
+    presence: float        # FaceMesh's face presence on the final close render
+    detection: float       # BlazeFace's score on the final close render
+    search_score: float    # BlazeFace's score on the search view that led here
+
+    @property
+    def frame(self):
+        """(3, 3) rotation: columns right, up, forward."""
+        return np.column_stack([self.right, self.up, self.forward])
+
+    @property
+    def hits(self):
+        return self.triangle >= 0
+
+
+@dataclass(frozen=True)
+class _Candidate:
+    score: float
+    camera: Camera
+    detection: face_models.FaceDetection   # in the render's own pixels
+
+
+class _Models:
+    """The detector and the landmarker, loaded once per search (cv2.dnn nets are not shared
+    between threads)."""
+
+    def __init__(self):
+        self.detector = face_models.FaceDetector()
+        self.landmarker = face_models.FaceLandmarker()
+        self.canonical = data.canonical_face().vertices
+
+
+def find_face(vertices, triangles):
+    """The face on a mesh (world-space (n, 3) vertices, (m, 3) triangles): a FoundFace.
+
+    Raises ExCloneError (saying what to do) when no view holds a face that passes the checks."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if len(triangles) == 0 or not np.all(np.isfinite(vertices)):
+        raise ExCloneError("the mesh has no triangles or non-finite vertices; " + NOT_FOUND)
+    normals = _shading_normals(vertices, triangles)
+    models = _Models()
+    candidates = sorted(_search(vertices, triangles, normals, models), key=lambda c: -c.score)
+    for candidate in candidates[:CANDIDATES]:
+        # the checks on the close render are strict: the first candidate passing them is the face
+        found = _refined(vertices, triangles, normals, models, candidate)
+        if found is not None:
+            return found
+    raise ExCloneError(NOT_FOUND)
+
+
+def _shading_normals(vertices, triangles):
+    """Vertex normals of the mesh welded at split seams (so seams do not show as creases in the
+    renders), given back per original vertex."""
+    joined, index = welded(PolyMesh.from_faces(vertices, triangles))
+    return vertex_normals(joined.vertices, index[triangles])[index]
+
+
+def _whole_view(vertices, direction):
+    """A camera that sees the whole mesh from `direction`."""
+    up = np.eye(3)[np.argmin(np.abs(direction))]
+    probe = Camera.looking(np.zeros(3), direction, up, 1.0, RENDER_SIZE)
+    local = vertices @ probe.axes[:2].T
+    low, high = local.min(axis=0), local.max(axis=0)
+    centre = probe.axes[:2].T @ ((low + high) / 2.0)
+    width = 1.05 * float(np.max(high - low))
+    return Camera.looking(centre, direction, up, max(width, 1e-12), RENDER_SIZE)
+
+
+def _search(vertices, triangles, normals, models):
+    """Every detection in every search view, roll and crop, in its render's pixels."""
+    candidates = []
+    for direction in SEARCH_DIRECTIONS:
+        view = render(vertices, triangles, _whole_view(vertices, direction), normals)
+        for roll in range(4):
+            image = _turned(view.image, roll)
+            for crop_image, offset in _crops(image):
+                for detection in models.detector.detect(crop_image):
+                    unrolled = _unrolled(detection, offset, roll, RENDER_SIZE)
+                    candidates.append(_Candidate(detection.score, view.camera, unrolled))
+    return candidates
+
+
+def _turned(image, roll):
+    """The image turned `roll` quarter turns clockwise."""
+    codes = (cv2.ROTATE_90_CLOCKWISE, cv2.ROTATE_180, cv2.ROTATE_90_COUNTERCLOCKWISE)
+    return image if roll == 0 else cv2.rotate(image, codes[roll - 1])
+
+
+def _crops(image):
+    """The whole image and a square crop of its silhouette's top: (image, (x, y) offset)."""
+    yield image, np.zeros(2)
+    rows = np.flatnonzero(image.any(axis=(1, 2)))
+    if len(rows) == 0:
+        return
+    side = max(int(TOP_CROP * (rows[-1] - rows[0] + 1)), face_models.MIN_FACE_PIXELS)
+    top = rows[0]
+    columns = np.flatnonzero(image[top:top + side].any(axis=(0, 2)))
+    middle = (columns[0] + columns[-1]) // 2
+    left = int(np.clip(middle - side // 2, 0, image.shape[1] - side))
+    yield image[top:top + side, left:left + side], np.array([left, top], float)
+
+
+def _unrolled(detection, offset, roll, size):
+    """A detection made in a crop (at offset) of the render turned `roll` quarter turns
+    clockwise, in the unturned render's pixels."""
+    def back(points):
+        points = np.asarray(points, float) + offset
+        for _ in range(roll):       # undo one clockwise quarter turn: (x, y) <- (y, size-1-x)
+            points = np.column_stack([points[:, 1], size - 1 - points[:, 0]])
+        return points
+
+    corners = back(detection.box.reshape(2, 2))
+    box = np.concatenate([corners.min(axis=0), corners.max(axis=0)])
+    return face_models.FaceDetection(box=box, score=detection.score,
+                                     keypoints=back(detection.keypoints))
+
+
+def _landmarks_on_surface(view, models, roi):
+    """FaceMesh on a render: (468, 3) surface points, (468,) triangles, presence."""
+    pixels, presence = models.landmarker.landmarks(view.image, roi)
+    points, ids = view.surface_points(pixels[:, :2])
+    return points, ids, presence
+
+
+def _frame(points, canonical):
+    """(rotation (3, 3) with columns right, up, forward; face height) that lay the canonical
+    face onto the points found (NaN ones left out); None if too few. The face height (forehead
+    to chin) is the canonical face's, scaled to the points."""
+    hit = np.all(np.isfinite(points), axis=1)
+    if hit.sum() < face_models.NUM_LANDMARKS // 2:
+        return None
+    world = points[hit] - points[hit].mean(axis=0)
+    model = canonical[hit] - canonical[hit].mean(axis=0)
+    rotation, _ = Rotation.align_vectors(world, model)
+    scale = np.sqrt((world ** 2).sum() / (model ** 2).sum())
+    return rotation.as_matrix(), float(scale * np.linalg.norm(canonical[FOREHEAD] - canonical[CHIN]))
+
+
+def _refined(vertices, triangles, normals, models, candidate):
+    """The candidate checked by FaceMesh and refined by close renders; None if it is no face."""
+    view = render(vertices, triangles, candidate.camera, normals)
+    points, ids, presence = _landmarks_on_surface(
+        view, models, face_models.roi_from_detection(candidate.detection))
+    if presence < face_models.FACE_PRESENCE_THRESHOLD:
+        return None
+    detection_score = 0.0
+    for _ in range(REFINEMENTS):
+        fitted = _frame(points, models.canonical)
+        if fitted is None:
+            return None
+        rotation, height = fitted
+        centre = np.nanmean(points, axis=0)
+        camera = Camera.looking(centre, rotation[:, 2], rotation[:, 1],
+                                CLOSE_VIEW_FACES * height, RENDER_SIZE)
+        view = render(vertices, triangles, camera, normals)
+        roi, detection_score = _close_roi(view, models, points)
+        points, ids, presence = _landmarks_on_surface(view, models, roi)
+    fitted = _frame(points, models.canonical)
+    if fitted is None or presence < MIN_PRESENCE or detection_score < MIN_REDETECTION:
+        return None
+    return _found(points, ids, fitted[0], presence, detection_score, candidate.score)
+
+
+def _close_roi(view, models, points):
+    """The FaceMesh region on a close render and BlazeFace's score there: the detection nearest
+    the image centre if there is one, else the previous points' region."""
+    detections = models.detector.detect(view.image)
+    centre = np.full(2, (view.camera.size - 1) / 2.0)
+    if detections:
+        best = min(detections, key=lambda d: np.linalg.norm((d.box[:2] + d.box[2:]) / 2 - centre))
+        return face_models.roi_from_detection(best), best.score
+    projected = view.camera.project(points[np.all(np.isfinite(points), axis=1)])
+    return face_models.roi_from_landmarks(projected[:, :2]), 0.0
+
+
+def _found(points, ids, rotation, presence, detection_score, search_score):
+    def mid(pair):
+        return np.mean(points[list(pair)], axis=0)
+
+    eye_distance = float(np.linalg.norm(mid(EYE_CORNERS_LEFT) - mid(EYE_CORNERS_RIGHT)))
+    face_height = float(np.linalg.norm(points[FOREHEAD] - points[CHIN]))
+    return FoundFace(points=points, triangle=ids, right=rotation[:, 0], up=rotation[:, 1],
+                     forward=rotation[:, 2], eye_distance=eye_distance, face_height=face_height,
+                     presence=presence, detection=detection_score, search_score=search_score)
+
+
+def head_region(vertices, triangles, found):
+    """(n,) bool: the head, for a solve that must leave the rest of a character still.
+
+    The connected part(s) holding most of the face's hits (eyes, teeth and lashes hold only a
+    few and are left out), cut by a plane HEAD_CUT_BELOW_CHIN face heights below the chin point,
+    perpendicular to the face's up axis; of what lies above the cut, the piece(s) holding the
+    hits (a raised hand above the cut is not head)."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    joined, index = welded(PolyMesh.from_faces(vertices, triangles))
+    joined_triangles = index[triangles]
+    hit_vertices = np.unique(index[triangles[found.triangle[found.hits]]].ravel())
+    above = (vertices - found.points[CHIN]) @ found.up >= -HEAD_CUT_BELOW_CHIN * found.face_height
+    above_joined = np.zeros(len(joined.vertices), dtype=bool)
+    above_joined[index[above]] = True
+    kept = joined_triangles[np.all(above_joined[joined_triangles], axis=1)]
+    labels = vertex_parts(len(joined.vertices), kept)
+    counts = np.bincount(labels[hit_vertices], minlength=labels.max() + 1)
+    counts[labels[np.setdiff1d(np.arange(len(labels)), np.unique(kept))]] = 0   # lone vertices
+    chosen = counts >= MIN_PART_SHARE * counts.max()
+    return chosen[labels[index]] & above
+
+
+# Below the chin point, in face heights (forehead 10 to chin 152): the head region keeps the
+# under-chin and the upper neck, which jawOpen and the mouth shapes move, and stops well above
+# the shoulders and clavicles (the chin is ~0.6 face heights above the sternal notch).
+HEAD_CUT_BELOW_CHIN = 0.3
+# A piece is part of the head when it holds at least this share of the best piece's hit
+# vertices: the skin holds hundreds, an eyeball or the lashes a few dozen.
+MIN_PART_SHARE = 0.25

@@ -1,0 +1,195 @@
+"""Orthographic renders of a mesh for the face models, with a triangle-id buffer (docs/method.md §4).
+
+Pure numpy/OpenCV (no bpy): face finding runs in core tests and off Blender's main thread.
+A z-buffer rasteriser, vectorised over (triangle, pixel) pairs: every pixel centre inside a
+triangle's projection is a candidate, the one nearest the camera wins. Shading is smooth
+(interpolated vertex normals), two-sided (a mesh with flipped windings still renders) and lit from
+the camera (a headlight), in a skin-like grey that the face models read as a face. Every pixel
+keeps the id of the triangle it shows, so a point found in the image goes back onto the surface
+exactly (`Render.surface_points`).
+
+Pixel coordinates are OpenCV's: the centre of pixel (column i, row j) is (i, j); image x grows
+along the camera's right, image y along its down.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+from .mesh import vertex_normals
+
+# Skin-like grey (BGR) under a headlight: the face detector scores such renders like photographs
+# of faces (measured in docs/method.md §4); pure white or pure grey score lower.
+SKIN_BGR = np.array([150.0, 170.0, 205.0])
+AMBIENT = 0.25
+# Candidate (triangle, pixel) pairs per batch: bounds the rasteriser's memory (~100 MB).
+PAIRS_PER_BATCH = 2_000_000
+
+
+@dataclass(frozen=True)
+class Camera:
+    """An orthographic camera: `axes` rows are its right, up and backward (towards the viewer)
+    directions in world space; `centre` (world) is seen at the image centre; one pixel is
+    `pixel_size` world units."""
+    centre: np.ndarray    # (3,)
+    axes: np.ndarray      # (3, 3) rows: right, up, back (unit, right-handed)
+    pixel_size: float
+    size: int             # the image is size x size pixels
+
+    @classmethod
+    def looking(cls, centre, forward, up, width, size=512):
+        """A camera looking along -forward (so it sees the side of the mesh facing `forward`),
+        image up along `up` (made perpendicular), `width` world units across the image."""
+        back = np.asarray(forward, float) / np.linalg.norm(forward)
+        up = np.asarray(up, float) - back * np.dot(up, back)
+        up /= np.linalg.norm(up)
+        right = np.cross(up, back)
+        return cls(np.asarray(centre, float), np.stack([right, up, back]), float(width) / size, size)
+
+    def project(self, points):
+        """(k, 3) world points -> (k, 3): image x, y in pixels and depth towards the viewer."""
+        local = (np.asarray(points, float) - self.centre) @ self.axes.T
+        half = (self.size - 1) / 2.0
+        return np.column_stack([half + local[:, 0] / self.pixel_size,
+                                half - local[:, 1] / self.pixel_size, local[:, 2]])
+
+    def ray_origins(self, pixels):
+        """(k, 2) image points -> (k, 3) world points on the plane through the centre that faces
+        the camera (the rays go along -back from there)."""
+        half = (self.size - 1) / 2.0
+        pixels = np.asarray(pixels, float)
+        return (self.centre + np.outer((pixels[:, 0] - half) * self.pixel_size, self.axes[0])
+                - np.outer((pixels[:, 1] - half) * self.pixel_size, self.axes[1]))
+
+
+@dataclass(frozen=True)
+class Render:
+    image: np.ndarray     # (size, size, 3) uint8 BGR, black background
+    triangle: np.ndarray  # (size, size) int32: the triangle seen at each pixel, -1 for background
+    camera: Camera
+    vertices: np.ndarray  # the mesh rendered (world space)
+    triangles: np.ndarray
+
+    def surface_points(self, pixels):
+        """(k, 2) image points -> ((k, 3) world points on the surface, (k,) triangle ids).
+
+        The triangle is the one seen at the nearest pixel; the point is where the pixel's ray
+        meets it (barycentric coordinates from the projection, clamped into the triangle). A
+        point on the background or outside the image gets NaN and -1."""
+        pixels = np.asarray(pixels, float)
+        k = len(pixels)
+        points, ids = np.full((k, 3), np.nan), np.full(k, -1, dtype=np.int64)
+        finite = np.all(np.isfinite(pixels), axis=1)
+        cols = np.zeros(k, dtype=np.int64)
+        rows = np.zeros(k, dtype=np.int64)
+        cols[finite] = np.rint(pixels[finite, 0])
+        rows[finite] = np.rint(pixels[finite, 1])
+        inside = finite & (cols >= 0) & (cols < self.camera.size) & (rows >= 0) & (rows < self.camera.size)
+        ids[inside] = self.triangle[rows[inside], cols[inside]]
+        hit = ids >= 0
+        corners = self.vertices[self.triangles[ids[hit]]]                 # (h, 3, 3)
+        flat = self.camera.project(corners.reshape(-1, 3))[:, :2].reshape(-1, 3, 2)
+        weights = np.clip(_barycentric(flat, pixels[hit]), 0.0, None)
+        weights /= weights.sum(axis=1, keepdims=True)
+        points[hit] = np.einsum("hc,hcd->hd", weights, corners)
+        return points, ids
+
+
+def _barycentric(flat, points):
+    """(h, 3) barycentric coordinates of 2-D points (h, 2) in 2-D triangles (h, 3, 2); a
+    degenerate triangle gives its first corner."""
+    e1, e2 = flat[:, 1] - flat[:, 0], flat[:, 2] - flat[:, 0]
+    d = points - flat[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    safe = np.where(np.abs(det) > 1e-12, det, 1.0)
+    b1 = np.where(det != 0, (d[:, 0] * e2[:, 1] - d[:, 1] * e2[:, 0]) / safe, 0.0)
+    b2 = np.where(det != 0, (e1[:, 0] * d[:, 1] - e1[:, 1] * d[:, 0]) / safe, 0.0)
+    return np.column_stack([1.0 - b1 - b2, b1, b2])
+
+
+def render(vertices, triangles, camera, normals=None):
+    """Render a mesh (world-space (n, 3) vertices, (m, 3) triangles) through `camera`.
+
+    normals: (n, 3) vertex normals for the shading (default: area-weighted, core.mesh); pass the
+    welded mesh's so split seams do not show as creases."""
+    vertices = np.asarray(vertices, float)
+    triangles = np.asarray(triangles, dtype=np.int64)
+    if normals is None:
+        normals = vertex_normals(vertices, triangles)
+    projected = camera.project(vertices)
+    size = camera.size
+    depth = np.full(size * size, -np.inf)
+    winner = np.full(size * size, -1, dtype=np.int64)
+    weights = np.zeros((size * size, 3))
+    for batch in _batches(projected, triangles, size):
+        _rasterise(projected, triangles, batch, size, depth, winner, weights)
+    seen = winner >= 0
+    normal = np.einsum("pc,pcd->pd", weights[seen], normals[triangles[winner[seen]]])
+    length = np.linalg.norm(normal, axis=1)
+    light = np.abs(normal @ camera.axes[2]) / np.maximum(length, 1e-12)
+    image = np.zeros((size * size, 3))
+    image[seen] = SKIN_BGR * (AMBIENT + (1.0 - AMBIENT) * light)[:, None]
+    return Render(image=np.clip(image, 0, 255).astype(np.uint8).reshape(size, size, 3),
+                  triangle=winner.astype(np.int32).reshape(size, size), camera=camera,
+                  vertices=vertices, triangles=triangles)
+
+
+def _pixel_boxes(projected, triangles, size):
+    """Per triangle: the first pixel column/row whose centre may be inside, and how many."""
+    xy = projected[:, :2][triangles]                                       # (m, 3, 2)
+    low = np.clip(np.ceil(xy.min(axis=1)), 0, size).astype(np.int64)
+    high = np.clip(np.floor(xy.max(axis=1)), -1, size - 1).astype(np.int64)
+    return low, np.maximum(high - low + 1, 0)
+
+
+def _batches(projected, triangles, size):
+    """Triangle ids in batches of at most PAIRS_PER_BATCH candidate pixels (a bigger triangle
+    is a batch of its own)."""
+    _, extent = _pixel_boxes(projected, triangles, size)
+    count = extent[:, 0] * extent[:, 1]
+    candidates = np.flatnonzero(count > 0)
+    cumulative = np.cumsum(count[candidates])
+    starts = np.searchsorted(cumulative, np.arange(0, cumulative[-1] if len(cumulative) else 0,
+                                                   PAIRS_PER_BATCH), side="right")
+    bounds = np.unique(np.concatenate([starts, [len(candidates)]]))
+    return [candidates[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
+
+
+def _plane_coefficients(corners):
+    """(b, 3, 3) affine coefficients (of x, y, 1) per triangle of its 2nd and 3rd barycentric
+    coordinates and its depth, from projected corners (b, 3, 3); degenerate triangles get
+    coefficients that put every pixel outside."""
+    e1, e2 = corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]
+    det = e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0]
+    good = np.abs(det) > 1e-12
+    inv = np.where(good, 1.0 / np.where(good, det, 1.0), 0.0)
+    x0, y0 = corners[:, 0, 0], corners[:, 0, 1]
+    # b1 = ((x - x0) e2y - (y - y0) e2x) / det, b2 = ((y - y0) e1x - (x - x0) e1y) / det
+    b1 = np.stack([e2[:, 1], -e2[:, 0], -x0 * e2[:, 1] + y0 * e2[:, 0]], axis=1) * inv[:, None]
+    b2 = np.stack([-e1[:, 1], e1[:, 0], x0 * e1[:, 1] - y0 * e1[:, 0]], axis=1) * inv[:, None]
+    b1[~good] = (0.0, 0.0, -1.0)
+    z = (corners[:, 0, 2, None] * (np.eye(3)[2] - b1 - b2) + corners[:, 1, 2, None] * b1
+         + corners[:, 2, 2, None] * b2)
+    return np.stack([b1, b2, z], axis=1)
+
+
+def _rasterise(projected, triangles, ids, size, depth, winner, weights):
+    """Z-buffer one batch of triangles into depth/winner/weights (flat per-pixel buffers)."""
+    low, extent = _pixel_boxes(projected, triangles[ids], size)
+    count = extent[:, 0] * extent[:, 1]
+    owner = np.repeat(np.arange(len(ids), dtype=np.int32), count)
+    local = np.arange(count.sum(), dtype=np.int32) - np.repeat(
+        (np.cumsum(count) - count).astype(np.int32), count)
+    width = extent[:, 0].astype(np.int32)[owner]
+    cols = low[:, 0].astype(np.int32)[owner] + local % width
+    rows = low[:, 1].astype(np.int32)[owner] + local // width
+    planes = _plane_coefficients(projected[triangles[ids]])[owner]        # (p, 3, 3)
+    values = planes[:, :, 0] * cols[:, None] + planes[:, :, 1] * rows[:, None] + planes[:, :, 2]
+    b1, b2, z = values[:, 0], values[:, 1], values[:, 2]
+    inside = (b1 >= -1e-9) & (b2 >= -1e-9) & (b1 + b2 <= 1.0 + 1e-9)
+    pixel = (rows * size + cols)[inside]
+    z, owner, b1, b2 = z[inside], owner[inside], b1[inside], b2[inside]
+    np.maximum.at(depth, pixel, z)
+    won = z >= depth[pixel]       # the nearest in its pixel (or as near as what is there)
+    pixel = pixel[won]
+    winner[pixel] = ids[owner[won]]
+    weights[pixel] = np.column_stack([1.0 - b1[won] - b2[won], b1[won], b2[won]])
