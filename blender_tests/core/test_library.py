@@ -11,6 +11,7 @@ from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import (ARKIT_BLENDSHAPES, arkit_blendshapes,
                                         load_library, load_obj_folder)
 from exclone_addon.core.mesh import PolyMesh, read_obj, write_obj
+from exclone_addon.core.followers import TONGUE_OUT_JAW_OPEN
 
 SHARED_ICT = REPO_ROOT.parent / "shared" / "data" / "ict-facekit"
 DATA = REPO_ROOT / "exclone_addon" / "data"
@@ -160,22 +161,24 @@ def test_arkit_name_list():
 
 def test_arkit_blendshapes(library):
     names, deltas, missing = arkit_blendshapes(library.names, library.deltas)
-    assert len(names) == 51 and deltas.shape == (51, 26719, 3)
-    assert set(names) <= set(ARKIT_BLENDSHAPES) and missing == ["tongueOut"]
-    assert not ICT_EXTRAS & set(names)
-    assert names == [n for n in ARKIT_BLENDSHAPES if n != "tongueOut"]
+    assert len(names) == 52 and deltas.shape == (52, 26719, 3)
+    assert not ICT_EXTRAS & set(names) and missing == []
+    assert names == ARKIT_BLENDSHAPES
     source = {name: library.deltas[i] for i, name in enumerate(library.names)}
     for combined in ["browInnerUp", "cheekPuff"]:
         np.testing.assert_array_equal(deltas[names.index(combined)],
                                       source[combined + "_L"] + source[combined + "_R"])
     np.testing.assert_array_equal(deltas[names.index("jawOpen")], source["jawOpen"])
+    # tongueOut, not in the library, opens the jaw part of the way for the tongue
+    np.testing.assert_array_equal(deltas[names.index("tongueOut")],
+                                  TONGUE_OUT_JAW_OPEN * source["jawOpen"])
 
 
 def test_arkit_blendshapes_needs_both_halves(library):
     keep = ["browInnerUp_L", "jawOpen"]
     sub = library.subset(keep)
     names, deltas, missing = arkit_blendshapes(sub.names, sub.deltas)
-    assert names == ["jawOpen"] and "browInnerUp" in missing and len(missing) == 51
+    assert names == ["jawOpen", "tongueOut"] and "browInnerUp" in missing and len(missing) == 50
 
 
 def test_obj_folder_reads_only_the_expressions_vertices(tmp_path):

@@ -14,9 +14,8 @@ from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
-from . import deformation
+from . import deformation, followers
 from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
 from .errors import ExCloneError
 from .landmarks import MIN_PAIRS, automatic_landmarks, checked_pairs
@@ -439,6 +438,7 @@ def transfer_expressions(fit, source_deltas, names):
     moving = deltas.any(axis=(1, 2))
     if moving.any():
         result[moving] = _transferred(fit, deltas[moving])
+        _follow_unsolved(result, fit, names)
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
     timings["total"] = sum(timings.values())
     return CloneResult(list(names), result[:, fit.welded_target.index], fit.source_landmarks,
@@ -455,7 +455,6 @@ def _transferred(fit, deltas):
         fit._transfer = Transfer(fit.target_region.vertices, fit.target_region.triangles,
                                  fit.weights, fit.formulation, fit.fixed_vertices)
     result = fit._transfer(wanted, moves_at[:, anchors], anchors)
-    _follow_unsolved(result, fit.target_region, fit.welded_target.mesh.triangles())
     result[:, fit._transfer.fixed] = 0.0       # also where a fixed vertex was left to follow
     if not np.all(np.isfinite(result)):
         raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
@@ -522,51 +521,46 @@ def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
 
 # ------------------------------------------------------------------------------ unsolved parts
 
-# A separate part follows the face only if it comes this close to it (x the solved region's
-# bounding-box diagonal): eyes, teeth and lashes do; a prop or a second body does not.
-FOLLOW_REACH = 0.1
-
-
-def _follow_unsolved(result, solved_region, all_triangles):
-    """Vertices the transfer did not solve (on no triangle of the solved_region Surface) follow
-    the solved ones next to them (docs/method.md §9).
+def _follow_unsolved(result, fit, names):
+    """Vertices the transfer did not solve (on no triangle of the solved region) follow it
+    (docs/method.md §9); result (E, n, 3) in the welded numbering, changed in place.
 
     In a solved part (only on degenerate, skipped triangles) a vertex copies its nearest solved
-    vertex. A separate part without landmarks (an eyeball, teeth) moves as a rigid body: the
-    rotation and translation that best carry the solved vertices nearest to it (its anchors),
-    so it keeps its shape (teeth follow the jaw, eyes the lids around them); a part further than
-    FOLLOW_REACH from the face stays where it is. all_triangles: every triangle of the target,
-    degenerate ones too (they connect a vertex to its part).
+    vertex. Separate parts (eyeballs, teeth, lashes) follow by the rules of core/followers.py,
+    placed by the fit's landmarks (or the automatic ones of the solved region when the
+    landmarks were placed by hand); where no face can be described, they stay still.
     """
+    solved_region, all_triangles = fit.target_region, fit.welded_target.mesh.triangles()
     vertices, solved = solved_region.vertices, solved_region.used
     orphans = np.setdiff1d(np.unique(all_triangles), solved)
     if not len(orphans):
         return
-    gap, nearest = cKDTree(vertices[solved]).query(vertices[orphans])
-    anchors = solved[nearest]
+    nearest = solved[cKDTree(vertices[solved]).query(vertices[orphans])[1]]
     parts = vertex_parts(len(vertices), all_triangles)
     in_solved_part = np.isin(parts[orphans], parts[solved])
-    result[:, orphans[in_solved_part]] = result[:, anchors[in_solved_part]]
-    reach = FOLLOW_REACH * solved_region.diagonal
-    for part in np.unique(parts[orphans[~in_solved_part]]):
-        mine = parts[orphans] == part
-        if gap[mine].min() <= reach:          # further away (a prop), it stays
-            _follow_rigidly(result, vertices, orphans[mine], np.unique(anchors[mine]))
-
-
-def _follow_rigidly(result, vertices, members, anchors):
-    """Move the vertices `members` as one rigid body with the solved vertices `anchors`."""
-    if len(anchors) < 3:                                  # too few anchors to fix a rotation
-        result[:, members] = result[:, anchors].mean(axis=1, keepdims=True)
+    result[:, orphans[in_solved_part]] = result[:, nearest[in_solved_part]]
+    separate = orphans[~in_solved_part]
+    face = _face_of(fit) if len(separate) else None
+    if face is None:
         return
-    rest = vertices[anchors]
-    centre = rest.mean(axis=0)
-    for e in range(len(result)):
-        moved = rest + result[e, anchors]
-        moved_centre = moved.mean(axis=0)
-        rotation, _ = Rotation.align_vectors(moved - moved_centre, rest - centre)
-        result[e, members] = (rotation.apply(vertices[members] - centre) + moved_centre
-                              - vertices[members])
+    triangles = all_triangles[np.isin(all_triangles[:, 0], separate)]
+    motion = followers.follow(face, result, names, [(vertices, triangles)])[0].deltas
+    result[:, separate] = motion[:, separate]
+
+
+def _face_of(fit):
+    """followers.Face of the fit's solved region, from its landmarks' names and positions, or
+    its automatic landmarks; None if neither describes a face."""
+    region = fit.target_region
+    points = dict(zip(fit.landmark_names,
+                      region.vertices[fit.welded_target.index[fit.target_landmarks]]))
+    try:
+        if not set(followers.FACE_POINTS) <= set(points):
+            names, ids = _found(region)
+            points = dict(zip(names, region.vertices[np.asarray(ids, dtype=np.int64)]))
+        return followers.face_from_points(region.vertices, region.triangles, points)
+    except ExCloneError:
+        return None
 
 
 # ------------------------------------------------------------------------------ plumbing

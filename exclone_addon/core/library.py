@@ -11,6 +11,7 @@ import numpy as np
 
 from . import data
 from .errors import ExCloneError
+from .followers import TONGUE_OUT_JAW_OPEN
 from .mesh import PolyMesh, read_obj
 
 SUPPORTED_FORMAT = 1
@@ -140,7 +141,10 @@ def arkit_blendshapes(names, deltas):
 
     Returns (arkit_names, arkit_deltas, missing): the ARKit shapes available, in Apple's order
     (split _L/_R halves of browInnerUp and cheekPuff are summed into one shape; non-ARKit
-    expressions are dropped), and the ARKit names that could not be made.
+    expressions are dropped), and the ARKit names that could not be made. Without its own
+    tongueOut, tongueOut is jawOpen at followers.TONGUE_OUT_JAW_OPEN on the skin: the mouth opens
+    for the tongue, which the followers bring forward (a face without a tongue still opens its
+    mouth, as a performer's does).
     """
     index = {name: i for i, name in enumerate(names)}
     out_names, out_deltas, missing = [], [], []
@@ -150,6 +154,8 @@ def arkit_blendshapes(names, deltas):
             out_deltas.append(deltas[index[name]])
         elif halves and all(h in index for h in halves):
             out_deltas.append(sum(deltas[index[h]] for h in halves))
+        elif name == "tongueOut" and "jawOpen" in index:
+            out_deltas.append(TONGUE_OUT_JAW_OPEN * deltas[index["jawOpen"]])
         else:
             missing.append(name)
             continue

@@ -1,0 +1,418 @@
+"""What follows the face (docs/method.md §9): eyes, eyebrows and eyelashes, teeth and tongue.
+
+The engine solves the skin; everything else a character has at its face (eyeballs, eyebrow and
+eyelash cards, teeth, gums, tongue), as separate parts of the target mesh or as objects of their
+own, follows the solved skin by rules a rigged character obeys:
+
+- **eyes** (a closed, roughly spherical shell in an eye socket) stay rigid with the skull in
+  every key, except the eyeLook* keys of their side, where they turn about their fitted centre
+  by EYE_LOOK_DEGREES (the skin keys move the lids on top);
+- **brows and lashes** (on the skin or just off it) are bound to their closest skin point and
+  move with it, turning with its triangle (a brow raise lifts the brows, a blink closes the
+  lashes with the lid);
+- **teeth and tongue** (inside the mouth, behind the lips): the lower row and the tongue move
+  with the jaw, a rigid motion fitted per key to the skin around the chin; the upper row stays
+  with the skull; in tongueOut the tongue also comes forward out of the opened mouth;
+- anything else (glasses, hair, a prop, a far object) stays still.
+
+Pure numpy/scipy; positions and displacements in one (world) space, in and out.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.sparse.csgraph import connected_components
+from scipy.sparse import coo_matrix
+from scipy.spatial.transform import Rotation
+
+from .errors import ExCloneError
+from .mesh import vertex_parts
+from .surface import Surface
+
+EYE, SKIN, MOUTH, STILL = "eye", "skin", "mouth", "still"
+UPPER, LOWER, TONGUE = 0, 1, 2
+
+# Gaze angles at an eyeLook* key's full value. ARKit documents neither the angles nor their
+# limits; apps that turn eye bones from these keys use about 30 degrees at 1.0 (e.g. kmp-facelink's
+# GazeEstimator: "ARKit eye look blend shapes typically saturate around 30-35 degrees"), and the
+# human eye's range is smaller upward than downward (about 25 against 30 degrees of comfortable
+# gaze), so up is a little less.
+EYE_LOOK_DEGREES = {"In": 30.0, "Out": 30.0, "Up": 25.0, "Down": 30.0}
+
+# The face's scale for every rule below is the distance between the outer eye corners (the eye
+# span, ~9 cm on an adult): rules then read the same on a child, a giant or a model in cm.
+# An eye: a sphere fitted to the piece (least squares) with a radius of 5-30% of the eye span
+# (a real eyeball is ~13%, a cartoon's larger), vertices within 12% of the radius of it (a cornea
+# bulges ~8%), vertices all around it (some vertex beyond 40% of the radius in each of the face's
+# six directions: a shell round its centre, not a cap or a card; MakeHuman's eyeball is open at
+# the back, reaching 53% there), centred within 35% of the span of the middle of an eye's
+# corners (the eyeball sits ~13% behind them).
+EYE_RADIUS = (0.05, 0.30)
+EYE_SPHERE_FIT = 0.12
+EYE_SHELL = 0.4
+EYE_SOCKET_REACH = 0.35
+# The mouth's inside: a piece centred behind the lips (0.1 span in front to 0.9 behind), within
+# half a span of the midline and of the lips' height. Teeth and tongue sit 1-6 cm behind the lips.
+MOUTH_BOX = {"left": 0.5, "up": 0.5, "front": 0.1, "back": 0.9}
+# A piece whose vertices lie (median) within 10% of the span of the skin is on it: eyebrows sit
+# ~1-2 mm off the skin, lashes grow from the lid margin with tips ~1 cm out.
+SKIN_HUG = 0.10
+# The jaw's rigid motion is fitted to the skin within 30% of the span of the chin point and more
+# than 35% of the span below the lips' line: the chin carries the bone's motion, the lips and
+# cheeks deform on their own. The jaw moves in a key only if that patch moves as one body (the
+# fit's residual under 8% of the patch's motion): measured on a MakeHuman head, jawOpen, jawLeft,
+# jawRight and jawForward leave 2.6-4.9%, keys that only slide the skin (smiles, puffs, presses)
+# 10-64%.
+JAW_PATCH = (0.30, 0.35)
+JAW_RIGIDITY = 0.08
+# A mouth part with at least 20% of its vertices on each side of the bite plane, around teeth
+# of both rows, holds both (gums and palate in one piece): it is split vertex by vertex. A tongue
+# has ~10% above the plane (its back arches up).
+BOTH_ROWS = 0.20
+# A tongue: a mouth part below the bite plane, across the midline, at least a quarter of the eye
+# span deep (a tongue is ~80%, a tooth ~8%), whose vertices near the midline (within 10% of its
+# width) run along more than 60% of its depth; a row of teeth is an arch, open behind the front.
+TONGUE_DEPTH = 0.25
+TONGUE_MIDLINE = (0.10, 0.60)
+# tongueOut: the skin opens its jaw by this fraction of jawOpen (Apple's reference shape shows the
+# mouth half open) and the tongue comes forward by this fraction of its own depth (the tip then
+# stands well beyond the lips), on top of the jaw's motion.
+TONGUE_OUT_JAW_OPEN = 0.5
+TONGUE_OUT_REACH = 0.45
+# A follower key that moves no vertex by more than this fraction of the span is not worth a key
+# (a millimetre on an adult, not seen): the lower teeth get jawOpen but not eyeBlink.
+KEY_MIN_MOTION = 0.01
+
+# the face points the rules need, by the engine's landmark names (core/landmarks.py)
+FACE_POINTS = ("eye_outer_left", "eye_outer_right", "eye_inner_left", "eye_inner_right",
+               "nose_bridge", "upper_lip", "lower_lip", "chin")
+
+
+@dataclass
+class Face:
+    """The solved skin at rest and the face's own axes and points, in the caller's space."""
+    skin: Surface
+    left: np.ndarray              # unit: towards the character's left
+    up: np.ndarray
+    forward: np.ndarray           # out of the face
+    mouth: np.ndarray             # between the lips
+    chin: np.ndarray
+    eyes: np.ndarray              # (2, 3) middle of the left and of the right eye's corners
+    span: float                   # outer eye corner to outer eye corner
+
+    def local(self, points):
+        """(m, 3) points as (left, up, forward) coordinates about the mouth."""
+        return (np.asarray(points) - self.mouth) @ np.stack([self.left, self.up, self.forward]).T
+
+
+def face_from_points(skin_vertices, skin_triangles, points):
+    """Face of the solved skin (vertices, triangles) and its named points {name: (3,)}.
+    ExCloneError naming what is missing when the points do not describe a face."""
+    missing = [name for name in FACE_POINTS if name not in points]
+    if missing:
+        raise ExCloneError("the parts around the face cannot be placed without the face's points "
+                           f"({', '.join(missing)}); run Auto Landmarks on the face")
+    p = {name: np.asarray(points[name], dtype=np.float64) for name in FACE_POINTS}
+    across = p["eye_outer_left"] - p["eye_outer_right"]
+    span = float(np.linalg.norm(across))
+    if span == 0:
+        raise ExCloneError("the face's outer eye corners coincide; check the landmarks")
+    left = across / span
+    up = p["nose_bridge"] - p["chin"]
+    up = up - left * (up @ left)
+    up /= np.linalg.norm(up)
+    eyes = np.stack([(p["eye_outer_left"] + p["eye_inner_left"]) / 2,
+                     (p["eye_outer_right"] + p["eye_inner_right"]) / 2])
+    return Face(Surface(skin_vertices, skin_triangles), left, up, np.cross(left, up),
+                (p["upper_lip"] + p["lower_lip"]) / 2, p["chin"], eyes, span)
+
+
+@dataclass
+class Piece:
+    """A group of a follower's parts that moves by one rule."""
+    kind: str                     # EYE, SKIN, MOUTH or STILL
+    ids: np.ndarray               # vertex ids of the follower
+    side: int = 0                 # eyes: 0 left, 1 right
+    centre: np.ndarray = None     # eyes: fitted centre
+    roles: np.ndarray = None      # mouth: UPPER, LOWER or TONGUE per vertex of ids
+
+
+@dataclass
+class Following:
+    """A follower's motion: deltas (E, m, 3) and the pieces it was cut into."""
+    deltas: np.ndarray
+    pieces: list
+
+    def kinds(self):
+        """The kinds of its moving pieces, e.g. ["eye"] or ["mouth"], for a report."""
+        return sorted({piece.kind for piece in self.pieces if piece.kind != STILL})
+
+    def moving_keys(self, names, span):
+        """The names of the keys that move a vertex by more than KEY_MIN_MOTION of the span."""
+        reach = np.linalg.norm(self.deltas, axis=2).max(axis=1, initial=0.0)
+        return [name for name, r in zip(names, reach) if r > KEY_MIN_MOTION * span]
+
+
+def follow(face, skin_deltas, names, meshes):
+    """The motion of each follower in every key: a Following per mesh, deltas (E, m, 3).
+
+    meshes: [(vertices (m, 3), triangles (t, 3)), ...] at rest: the separate objects of a
+    character, or the parts of the target mesh the skin does not hold. skin_deltas: (E, n, 3) of
+    the face's skin vertices. The teeth of every mesh together set the bite plane (upper and
+    lower rows may be objects of their own)."""
+    skin_deltas = np.asarray(skin_deltas, dtype=np.float64)
+    meshes = [(np.asarray(v, dtype=np.float64), np.asarray(t, dtype=np.int64).reshape(-1, 3))
+              for v, t in meshes]
+    pieces = [[_classified(face, v, ids) for ids in _pieces(v, t)] for v, t in meshes]
+    mouth = [(v[p.ids], _within(t, p.ids), p) for (v, t), mine in zip(meshes, pieces)
+             for p in mine if p.kind == MOUTH]
+    _set_mouth_roles(face, mouth)
+    followings = []
+    for (vertices, _), mine in zip(meshes, pieces):
+        deltas = np.zeros((len(names), len(vertices), 3))
+        for piece in mine:
+            points = vertices[piece.ids]
+            if piece.kind == EYE:
+                deltas[:, piece.ids] = _eye_motion(face, names, points, piece)
+            elif piece.kind == SKIN:
+                deltas[:, piece.ids] = _skin_motion(face, skin_deltas, points)
+            elif piece.kind == MOUTH:
+                deltas[:, piece.ids] = _mouth_motion(face, skin_deltas, names, points,
+                                                     piece.roles)
+        followings.append(Following(deltas, mine))
+    return followings
+
+
+def _within(triangles, ids):
+    """The triangles whose corners are all in `ids`, numbered by position in `ids` (sorted)."""
+    kept = triangles[np.isin(triangles, ids).all(axis=1)]
+    return np.searchsorted(ids, kept)
+
+
+# ------------------------------------------------------------------------------ pieces
+
+def _pieces(vertices, triangles):
+    """Vertex ids of each piece: connected parts, a part whose bounding box lies inside another's
+    (a cornea in its eyeball, a tooth in the gums, a tongue between them) joined to it."""
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    used = np.unique(triangles)
+    parts = vertex_parts(len(vertices), triangles)[used]
+    labels = np.unique(parts)
+    low = np.array([vertices[used[parts == label]].min(axis=0) for label in labels])
+    high = np.array([vertices[used[parts == label]].max(axis=0) for label in labels])
+    margin = 0.1 * (high - low)
+    inside = np.all((low[:, None] >= low[None] - margin[None])
+                    & (high[:, None] <= high[None] + margin[None]), axis=2)
+    a, b = np.nonzero(inside)
+    graph = coo_matrix((np.ones(len(a)), (a, b)), shape=(len(labels),) * 2)
+    groups = connected_components(graph, directed=False)[1]
+    group_of = groups[np.searchsorted(labels, parts)]
+    return [used[group_of == g] for g in np.unique(group_of)]
+
+
+def _classified(face, vertices, ids):
+    """The Piece of the vertices `ids`: an eye, the mouth's inside, on the skin, or still."""
+    points = vertices[ids]
+    eye = _as_eye(face, points)
+    if eye is not None:
+        return Piece(EYE, ids, side=eye[0], centre=eye[1])
+    local = face.local(points.mean(axis=0)) / face.span
+    box = MOUTH_BOX
+    if abs(local[0]) < box["left"] and abs(local[1]) < box["up"] \
+            and -box["back"] < local[2] < box["front"]:
+        return Piece(MOUTH, ids)
+    distances = face.skin.closest(points)[2]
+    if np.median(distances) < SKIN_HUG * face.span:
+        return Piece(SKIN, ids)
+    return Piece(STILL, ids)
+
+
+def _as_eye(face, points):
+    """(side, centre) if the points are an eyeball's shell in an eye socket, else None."""
+    if len(points) < 10:
+        return None
+    centre, radius = _fitted_sphere(points)
+    if not EYE_RADIUS[0] * face.span <= radius <= EYE_RADIUS[1] * face.span:
+        return None
+    offsets = points - centre
+    lengths = np.linalg.norm(offsets, axis=1)
+    if np.sqrt(np.mean((lengths - radius) ** 2)) > EYE_SPHERE_FIT * radius:
+        return None
+    axes = np.stack([face.left, face.up, face.forward])
+    reach_out = np.concatenate([(offsets @ axes.T).max(axis=0), -(offsets @ axes.T).min(axis=0)])
+    if reach_out.min() < EYE_SHELL * radius:
+        return None
+    reach = np.linalg.norm(face.eyes - centre, axis=1)
+    side = int(np.argmin(reach))
+    return (side, centre) if reach[side] < EYE_SOCKET_REACH * face.span else None
+
+
+def _fitted_sphere(points):
+    """(centre, radius) of the least-squares sphere through the points (|x|^2 = 2 c.x + k)."""
+    mean = points.mean(axis=0)
+    x = points - mean
+    system = np.column_stack([2 * x, np.ones(len(x))])
+    solution = np.linalg.lstsq(system, (x ** 2).sum(axis=1), rcond=None)[0]
+    centre = solution[:3]
+    return centre + mean, float(np.sqrt(max(solution[3] + centre @ centre, 0.0)))
+
+
+# ------------------------------------------------------------------------------ eyes
+
+def eye_look(name):
+    """(side, direction) of an eyeLook* key name ('eyeLookIn_L' -> (0, 'In')), else None."""
+    for direction in EYE_LOOK_DEGREES:
+        for side, suffix in enumerate(("_L", "_R")):
+            if name == f"eyeLook{direction}{suffix}":
+                return side, direction
+    return None
+
+
+def gaze_rotation(face, side, direction):
+    """The Rotation that turns an eye of `side` (0 left, 1 right) by its eyeLook key: In turns
+    the eye towards the nose, Out away from it."""
+    degrees = EYE_LOOK_DEGREES[direction]
+    if direction in ("Up", "Down"):
+        # turning about -left carries forward towards up
+        axis = -face.left if direction == "Up" else face.left
+    else:
+        # turning about up carries forward towards left: out for the left eye, in for the right
+        outward = 1.0 if side == 0 else -1.0
+        axis = face.up * (outward if direction == "Out" else -outward)
+    return Rotation.from_rotvec(np.radians(degrees) * axis)
+
+
+def _eye_motion(face, names, points, piece):
+    """(E, m, 3): still, but turned about the centre in the eyeLook keys of its side."""
+    motion = np.zeros((len(names), len(points), 3))
+    for e, name in enumerate(names):
+        look = eye_look(name)
+        if look is not None and look[0] == piece.side:
+            turned = gaze_rotation(face, *look).apply(points - piece.centre) + piece.centre
+            motion[e] = turned - points
+    return motion
+
+
+# ------------------------------------------------------------------------------ skin-bound
+
+def _skin_motion(face, skin_deltas, points):
+    """(E, m, 3): each point moves with its closest skin point and turns with its triangle."""
+    skin = face.skin
+    nearest, triangle, _, bary = skin.closest(points)
+    corners = skin.triangles[triangle]                                      # (m, 3)
+    carried = np.einsum("mc,emcx->emx", bary, skin_deltas[:, corners])
+    offsets = points - nearest
+    rest = _triangle_frames(skin.vertices[corners])                         # (m, 3, 3)
+    moved = _triangle_frames(skin.vertices[corners] + skin_deltas[:, corners])  # (E, m, 3, 3)
+    turned = np.einsum("emij,mkj,mk->emi", moved, rest, offsets)            # R = F' F^T
+    return carried + turned - offsets
+
+
+def _triangle_frames(corners):
+    """(..., 3, 3) orthonormal frames (columns: first edge, normal, their cross) of triangles."""
+    edge = corners[..., 1, :] - corners[..., 0, :]
+    normal = np.cross(edge, corners[..., 2, :] - corners[..., 0, :])
+    edge = edge / np.maximum(np.linalg.norm(edge, axis=-1, keepdims=True), 1e-300)
+    normal = normal / np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-300)
+    return np.stack([edge, normal, np.cross(edge, normal)], axis=-1)
+
+
+# ------------------------------------------------------------------------------ mouth
+
+def _set_mouth_roles(face, mouth):
+    """Set every mouth piece's roles (UPPER, LOWER or TONGUE per vertex): each part by its centre
+    against the bite plane, a part round teeth of both rows (gums) vertex by vertex.
+    mouth: [(vertices, triangles, Piece)]."""
+    parts = [face.local(v)[vertex_parts(len(v), t) == label]
+             for v, t, _ in mouth for label in np.unique(vertex_parts(len(v), t))]
+    centres = np.array([part.mean(axis=0) for part in parts]).reshape(-1, 3)
+    plane = _bite_plane(centres)
+    below = centres[:, 1] < plane(centres)
+    k = 0
+    for vertices, triangles, piece in mouth:
+        labels = vertex_parts(len(vertices), triangles)
+        local = face.local(vertices)
+        piece.roles = np.full(len(vertices), UPPER)
+        for label in np.unique(labels):
+            mine = labels == label
+            others = np.arange(len(centres)) != k
+            under = local[mine, 1] < plane(local[mine])
+            if min(under.mean(), 1 - under.mean()) >= BOTH_ROWS \
+                    and _holds_both_rows(local[mine], centres[others], below[others]):
+                piece.roles[mine] = np.where(under, LOWER, UPPER)
+            elif below[k]:
+                piece.roles[mine] = TONGUE if _is_tongue(face, local[mine]) else LOWER
+            k += 1
+
+
+def _holds_both_rows(local, other_centres, other_below):
+    """Whether a part's bounding box holds the centres of other parts of both rows (gums and
+    palate in one piece around the teeth)."""
+    inside = np.all((other_centres >= local.min(axis=0)) & (other_centres <= local.max(axis=0)),
+                    axis=1)
+    return bool(np.any(inside & other_below) and np.any(inside & ~other_below))
+
+
+def _bite_plane(centres):
+    """The bite plane in face coordinates about the mouth, from the mouth parts' centres: a
+    callable giving its height under points (k, 3). With 4 parts or more, the plane fitted
+    through their centres (upper and lower rows balance each other, and the plane tilts back
+    with the arch as the rows do); else the lips' line."""
+    if len(centres) < 4:
+        return lambda points: np.zeros(len(points))
+    system = np.column_stack([np.ones(len(centres)), centres[:, 0], centres[:, 2]])
+    a, b, c = np.linalg.lstsq(system, centres[:, 1], rcond=None)[0]
+    return lambda points: a + b * points[:, 0] + c * points[:, 2]
+
+
+def _is_tongue(face, local):
+    """A part (face coordinates) that crosses the midline and runs along it for a quarter of the
+    eye span or more: not a tooth, not an arch of teeth."""
+    width, depth = np.ptp(local[:, 0]), np.ptp(local[:, 2])
+    if not local[:, 0].min() < 0 < local[:, 0].max() or depth < TONGUE_DEPTH * face.span:
+        return False
+    midline = local[np.abs(local[:, 0]) <= TONGUE_MIDLINE[0] * width]
+    return len(midline) > 1 and np.ptp(midline[:, 2]) > TONGUE_MIDLINE[1] * depth
+
+
+def _mouth_motion(face, skin_deltas, names, points, roles):
+    """(E, m, 3): upper row still, lower row and tongue with the jaw, the tongue forward in
+    tongueOut."""
+    motion = np.zeros((len(names), len(points), 3))
+    jawed = roles != UPPER
+    if not jawed.any():
+        return motion
+    patch = _jaw_patch(face)
+    rest = face.skin.vertices[patch]
+    for e, name in enumerate(names):
+        if len(patch) >= 3:
+            motion[e, jawed] = _jaw_motion(rest, skin_deltas[e, patch], points[jawed])
+        if name == "tongueOut":
+            tongue = roles == TONGUE
+            depth = np.ptp(face.local(points[tongue])[:, 2]) if tongue.any() else 0.0
+            motion[e, tongue] += TONGUE_OUT_REACH * depth * face.forward
+    return motion
+
+
+def _jaw_patch(face):
+    """Skin vertex ids that carry the jaw's motion: around the chin, below the lips (fewer than
+    3: the skin has no chin, the jaw does not move)."""
+    ids = face.skin.used
+    near = np.linalg.norm(face.skin.vertices[ids] - face.chin, axis=1) < JAW_PATCH[0] * face.span
+    below = face.local(face.skin.vertices[ids])[:, 1] < -JAW_PATCH[1] * face.span
+    return ids[near & below]
+
+
+def _jaw_motion(rest, moves, points):
+    """(m, 3) the motion of `points` with the jaw: the rigid motion (Kabsch,
+    Rotation.align_vectors) that best carries the patch's rest positions by `moves`, if the patch
+    moves as one body; else none."""
+    if not moves.any():
+        return np.zeros_like(points)
+    centre = rest.mean(axis=0)
+    moved = rest + moves
+    moved_centre = moved.mean(axis=0)
+    rotation = Rotation.align_vectors(moved - moved_centre, rest - centre)[0]
+    residual = rotation.apply(rest - centre) + moved_centre - moved
+    if np.sqrt(np.mean(residual ** 2)) >= JAW_RIGIDITY * np.sqrt(np.mean(moves ** 2)):
+        return np.zeros_like(points)
+    return rotation.apply(points - centre) + moved_centre - points
