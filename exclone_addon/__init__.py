@@ -7,9 +7,10 @@ so the Blender layer is imported only when Blender registers the extension.
 
 def _modules():
     """The Blender layer's modules in registration order (properties before what uses them)."""
-    from .blender import (live_operators, live_panel, operators, panel, preferences, properties,
-                          take_csv)
-    return (properties, preferences, operators, live_operators, take_csv, panel, live_panel)
+    from .blender import (character_keys, live_operators, live_panel, operators, panel,
+                          preferences, properties, take_csv)
+    return (properties, preferences, operators, character_keys, live_operators, take_csv, panel,
+            live_panel)
 
 
 def register():

@@ -74,10 +74,11 @@ BOTH_ROWS = 0.20
 TONGUE_DEPTH = 0.25
 TONGUE_MIDLINE = (0.10, 0.60)
 # tongueOut: the skin opens its jaw by this fraction of jawOpen (Apple's reference shape shows the
-# mouth half open) and the tongue comes forward by this fraction of its own depth (the tip then
-# stands well beyond the lips), on top of the jaw's motion.
+# mouth half open) and the tongue, moved with the jaw, comes straight forward until its tip
+# stands a quarter of its own depth in front of the lips (~2 cm on an adult, as a tongue
+# stuck out does).
 TONGUE_OUT_JAW_OPEN = 0.5
-TONGUE_OUT_REACH = 0.45
+TONGUE_OUT_REACH = 0.25
 # A follower key that moves no vertex by more than this fraction of the span is not worth a key
 # (a millimetre on an adult, not seen): the lower teeth get jawOpen but not eyeBlink.
 KEY_MIN_MOTION = 0.01
@@ -386,11 +387,20 @@ def _mouth_motion(face, skin_deltas, names, points, roles):
     for e, name in enumerate(names):
         if len(patch) >= 3:
             motion[e, jawed] = _jaw_motion(rest, skin_deltas[e, patch], points[jawed])
-        if name == "tongueOut":
-            tongue = roles == TONGUE
-            depth = np.ptp(face.local(points[tongue])[:, 2]) if tongue.any() else 0.0
-            motion[e, tongue] += TONGUE_OUT_REACH * depth * face.forward
+        tongue = roles == TONGUE
+        if name == "tongueOut" and tongue.any():
+            motion[e, tongue] += _tongue_out(face, skin_deltas[e], points[tongue] + motion[e, tongue])
     return motion
+
+
+def _tongue_out(face, skin_deltas, tongue):
+    """(3,) the translation along forward that brings the tongue's tip (positions `tongue`,
+    the jaw opened) TONGUE_OUT_REACH of its depth in front of the lips (the skin within 30% of
+    the span of the mouth, moved by the key)."""
+    near = np.linalg.norm(face.skin.vertices - face.mouth, axis=1) < 0.3 * face.span
+    lips_front = ((face.skin.vertices[near] + skin_deltas[near]) @ face.forward).max(initial=0.0)
+    reach = tongue @ face.forward
+    return max(lips_front + TONGUE_OUT_REACH * np.ptp(reach) - reach.max(), 0.0) * face.forward
 
 
 def _jaw_patch(face):

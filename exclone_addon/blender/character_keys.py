@@ -1,0 +1,162 @@
+"""The character's other objects get the face's keys (docs/method.md §9).
+
+After Clone or Generate ARKit Shapes writes keys on the face object, the character's other mesh
+objects (eyes, eyebrows, eyelashes, teeth, tongue) get the same-named keys, moved by the rules of
+core/followers.py (computed in world space, written in each object's own coordinates), and each
+follower key's value is driven by the face key's value, so one slider moves the whole face. Every
+object ExClone gives keys lists them in its MADE property, so Remove ExClone Keys takes away
+exactly those keys and their drivers.
+"""
+import bpy
+import numpy as np
+
+from ..core import followers
+from ..core.reports import listed
+from . import character, mesh_io
+from .reporting import in_object_mode, reporting
+
+MADE = "exclone_keys"            # object property: the names of the shape keys ExClone made
+MADE_BASIS = "exclone_basis"     # object property: ExClone added its reference key too
+
+
+def character_objects(face_obj):
+    """The character's other mesh objects: those under the face object's topmost parent, or,
+    for an object without a parent, the other mesh objects without one in its scenes."""
+    root = face_obj
+    while root.parent is not None:
+        root = root.parent
+    if root is not face_obj:
+        candidates = [root] + list(root.children_recursive)
+    else:
+        candidates = [obj for scene in face_obj.users_scene for obj in scene.objects
+                      if obj.parent is None]
+    seen = set()
+    others = []
+    for obj in candidates:
+        if obj.type == 'MESH' and obj is not face_obj and obj.name not in seen:
+            seen.add(obj.name)
+            others.append(obj)
+    return others
+
+
+def face_points(face_obj, names, ids):
+    """{name: world position} of the face object's landmark vertices (its own numbering)."""
+    world = character.world_mesh(face_obj).vertices
+    return dict(zip(names, world[np.asarray(ids, dtype=np.int64)]))
+
+
+def follow_face(face_obj, names, world_deltas, points, *, objects=None, replace_existing=False):
+    """Give the character's other objects the keys `names` of the face object, moved as they
+    follow its skin (world_deltas (E, n, 3): the face object's displacements in world space),
+    driven by the face's keys. points: the face's named points in world space (face_points).
+    Returns [(object names, kinds, key count)] of the objects that got keys."""
+    face_mesh = character.world_mesh(face_obj)
+    face = followers.face_from_points(face_mesh.vertices, face_mesh.triangles, points)
+    objects = character_objects(face_obj) if objects is None else list(objects)
+    objects = [obj for obj in objects if obj.library is None and obj.data.library is None]
+    meshes = [tuple(character.world_mesh(obj)) for obj in objects]
+    done = []
+    for obj, following in zip(objects, followers.follow(face, world_deltas, names, meshes)):
+        moving = following.moving_keys(names, face.span)
+        if not moving:
+            continue
+        rows = [names.index(name) for name in moving]
+        _write(obj, moving, character.local_deltas(obj, following.deltas[rows]), replace_existing)
+        _drive(obj, face_obj, moving)
+        done.append((obj.name, following.kinds(), len(moving)))
+    mark(face_obj, names)
+    return done
+
+
+def mark(obj, names):
+    """Record that ExClone made the keys `names` on obj (Remove ExClone Keys takes them)."""
+    obj[MADE] = sorted(set(obj.get(MADE, [])) | set(names))
+
+
+def _write(obj, names, deltas, replace_existing):
+    if obj.data.shape_keys is None:
+        obj[MADE_BASIS] = True
+    mesh_io.write_shape_keys(obj, names, deltas, replace_existing=replace_existing)
+    mark(obj, names)
+
+
+def _drive(obj, face_obj, names):
+    """Each of obj's keys `names` takes its value from the face object's key of that name."""
+    keys = obj.data.shape_keys
+    for name in names:
+        path = f'key_blocks["{name}"].value'
+        keys.driver_remove(path)
+        driver = keys.driver_add(path).driver
+        driver.type = 'AVERAGE'
+        variable = driver.variables.new()
+        variable.name = "face"
+        variable.type = 'SINGLE_PROP'
+        variable.targets[0].id_type = 'KEY'
+        variable.targets[0].id = face_obj.data.shape_keys
+        variable.targets[0].data_path = path
+
+
+def summary(done):
+    """One clause per group of objects: 'Eye_L, Eye_R: 4 eye keys; Teeth: 10 mouth keys'."""
+    groups = {}
+    for name, kinds, count in done:
+        groups.setdefault((tuple(kinds), count), []).append(name)
+    return "; ".join(f"{listed(names, most=4)}: {count} {'/'.join(kinds)} keys"
+                     for (kinds, count), names in groups.items())
+
+
+def remove_keys(objects):
+    """Remove the shape keys ExClone made on the objects (and the drivers on them), and the
+    reference key where ExClone added it and nothing else is left. Returns the keys removed."""
+    removed = 0
+    for obj in objects:
+        keys = obj.data.shape_keys if obj.type == 'MESH' else None
+        if MADE not in obj or keys is None:
+            continue
+        for name in obj[MADE]:
+            block = keys.key_blocks.get(name)
+            if block is None or block == keys.reference_key:
+                continue
+            keys.driver_remove(f'key_blocks["{name}"].value')
+            obj.shape_key_remove(block)
+            removed += 1
+        if obj.get(MADE_BASIS) and len(keys.key_blocks) == 1:
+            obj.shape_key_remove(keys.reference_key)
+        for prop in (MADE, MADE_BASIS):
+            obj.pop(prop, None)
+    return removed
+
+
+class EXCLONE_OT_remove_keys(bpy.types.Operator):
+    """Remove the shape keys ExClone made on the active object and the rest of its character
+    (eyes, teeth, ...), with their drivers; keys of your own stay"""
+    bl_idname = "exclone.remove_keys"
+    bl_label = "Remove ExClone Keys"
+    bl_options = {'REGISTER', 'UNDO'}
+
+    @classmethod
+    def poll(cls, context):
+        if not in_object_mode(cls, context):
+            return False
+        obj = context.active_object
+        if obj is None or obj.type != 'MESH':
+            cls.poll_message_set("Make the character's face object the active object")
+            return False
+        if not any(MADE in other for other in [obj] + character_objects(obj)):
+            cls.poll_message_set(f"ExClone made no keys on '{obj.name}' or its character")
+            return False
+        return True
+
+    @reporting
+    def execute(self, context):
+        obj = context.active_object
+        objects = [obj] + character_objects(obj)
+        touched = [other.name for other in objects if MADE in other]
+        removed = remove_keys(objects)
+        self.report({'INFO'}, f"Removed {removed} ExClone shape keys from "
+                              f"{listed(touched, most=6)}")
+        return {'FINISHED'}
+
+
+CLASSES = (EXCLONE_OT_remove_keys,)
+register, unregister = bpy.utils.register_classes_factory(CLASSES)
