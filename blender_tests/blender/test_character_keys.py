@@ -48,7 +48,8 @@ def clone(shared_data):
     names, head_deltas, _ = arkit_blendshapes(result.names, result.deltas)
     deltas = np.zeros((len(names), len(world.vertices), 3))
     deltas[:, ids] = head_deltas
-    points = character_keys.face_points(body, result.landmark_names, ids[result.target_landmarks])
+    points = character_keys.skin_points(world.vertices, world.triangles, result.landmark_names,
+                                        ids[result.target_landmarks])
     return names, deltas, points
 
 
@@ -58,7 +59,9 @@ def keyed(shared_data, clone):
     names, deltas, points = clone
     body = opened(shared_data)
     mesh_io.write_shape_keys(body, names, character.local_deltas(body, deltas))
-    return body, character_keys.follow_face(body, names, deltas, points)
+    skin = tuple(character.world_mesh(body))
+    return body, character_keys.follow_face(body, names, skin, deltas, points,
+                                             character_keys.character_objects(body))
 
 
 @pytest.fixture(scope="module")

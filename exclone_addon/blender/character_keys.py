@@ -11,12 +11,19 @@ import bpy
 import numpy as np
 
 from ..core import followers
+from ..core.cloning import found_landmarks
+from ..core.mesh import PolyMesh, diagonal
 from ..core.reports import listed
 from . import character, mesh_io
 from .reporting import in_object_mode, reporting
 
 MADE = "exclone_keys"            # object property: the names of the shape keys ExClone made
 MADE_BASIS = "exclone_basis"     # object property: ExClone added its reference key too
+
+
+# An object larger than half the solved skin (its bounding-box diagonal) is no part of a face
+# (a body, clothes, a second head): eyes, brows, lashes, teeth and tongue are far smaller.
+FOLLOWER_SIZE = 0.5
 
 
 def character_objects(face_obj):
@@ -30,33 +37,38 @@ def character_objects(face_obj):
     else:
         candidates = [obj for scene in face_obj.users_scene for obj in scene.objects
                       if obj.parent is None]
-    seen = set()
     others = []
     for obj in candidates:
-        if obj.type == 'MESH' and obj is not face_obj and obj.name not in seen:
-            seen.add(obj.name)
+        if obj.type == 'MESH' and obj is not face_obj and obj not in others:
             others.append(obj)
     return others
 
 
-def face_points(face_obj, names, ids):
-    """{name: world position} of the face object's landmark vertices (its own numbering)."""
-    world = character.world_mesh(face_obj).vertices
-    return dict(zip(names, world[np.asarray(ids, dtype=np.int64)]))
+def skin_points(skin_vertices, skin_triangles, names, ids):
+    """{name: position} of the face's points: the landmarks (names, vertex ids of the skin) if
+    they are named ones, else the skin's automatic landmarks (landmarks placed by hand).
+    ExCloneError if the skin's face cannot be found."""
+    if not set(followers.FACE_POINTS) <= set(names):
+        names, ids = found_landmarks(PolyMesh.from_faces(skin_vertices, skin_triangles.tolist()),
+                                     "face")
+    return dict(zip(names, np.asarray(skin_vertices)[np.asarray(ids, dtype=np.int64)]))
 
 
-def follow_face(face_obj, names, world_deltas, points, *, objects=None, replace_existing=False):
-    """Give the character's other objects the keys `names` of the face object, moved as they
-    follow its skin (world_deltas (E, n, 3): the face object's displacements in world space),
-    driven by the face's keys. points: the face's named points in world space (face_points).
-    Returns [(object names, kinds, key count)] of the objects that got keys."""
-    face_mesh = character.world_mesh(face_obj)
-    face = followers.face_from_points(face_mesh.vertices, face_mesh.triangles, points)
-    objects = character_objects(face_obj) if objects is None else list(objects)
+def follow_face(face_obj, names, skin, skin_deltas, points, objects, *, replace_existing=False):
+    """Give the objects (the character's others) the face object's keys `names`, moved as they
+    follow its skin, each key's value driven by the face's key of that name.
+
+    skin: (vertices, triangles) of the solved skin in world space, skin_deltas (E, n, 3) its
+    world-space displacements, points its named points ({name: (3,)}, skin_points). Returns
+    [(object name, kinds, key count)] of the objects that got keys."""
+    face = followers.face_from_points(*skin, points)
     objects = [obj for obj in objects if obj.library is None and obj.data.library is None]
     meshes = [tuple(character.world_mesh(obj)) for obj in objects]
+    small = [diagonal(v) < FOLLOWER_SIZE * face.skin.diagonal for v, _ in meshes]
+    objects = [obj for obj, keep in zip(objects, small) if keep]
+    meshes = [mesh for mesh, keep in zip(meshes, small) if keep]
     done = []
-    for obj, following in zip(objects, followers.follow(face, world_deltas, names, meshes)):
+    for obj, following in zip(objects, followers.follow(face, skin_deltas, names, meshes)):
         moving = following.moving_keys(names, face.span)
         if not moving:
             continue
