@@ -24,14 +24,14 @@ from scipy.spatial.transform import Rotation
 
 from . import data, face_models
 from .errors import ExCloneError
-from .face_render import Camera, render
+from .face_render import Camera, Render, render
 from .mesh import PolyMesh, vertex_normals, vertex_parts, welded
 
 RENDER_SIZE = 512
-# Whole-mesh views: the 6 axis directions and the 8 cube diagonals.
-SEARCH_DIRECTIONS = np.vstack([np.eye(3), -np.eye(3),
-                               np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T
-                               / np.sqrt(3.0)])
+# Whole-mesh views: the 6 axis directions first (most characters come axis-aligned), then the
+# 8 cube diagonals.
+SEARCH_DIRECTIONS = (np.vstack([np.eye(3), -np.eye(3)]),
+                     np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T / np.sqrt(3.0))
 # Share of the silhouette's height taken as the close crop of its top: a standing body's head
 # and neck (a body is ~7.5 heads tall), upright in one of the four rolls.
 TOP_CROP = 0.25
@@ -44,8 +44,22 @@ MIN_REDETECTION = 0.85
 # The close render is this many face heights (forehead 10 to chin 152) across.
 CLOSE_VIEW_FACES = 1.8
 # FaceMesh points used for the frame and the sizes.
-FOREHEAD, CHIN, NOSE_TIP = 10, 152, 1
+FOREHEAD, CHIN = 10, 152       # CHIN: the chin's lowest point (the menton)
 EYE_CORNERS_RIGHT, EYE_CORNERS_LEFT = (33, 133), (263, 362)   # the character's right, left
+# The project's landmark names (core.landmarks.NAMES; "left" is the character's left) at the
+# FaceMesh point nearest each: measured on the ICT library's face and three ICT identities
+# against the library's automatic landmarks, within 0.07 eye distances on average (0.2 at worst:
+# the outer eye corners and upper lids, where a ray can meet the eyeball behind the lids).
+# The project's chin is the chin's front (FaceMesh 200), not its lowest point (152, the menton:
+# 0.33 eye distances away); its eye_inner points lie on the lower lid next to the corners.
+# Brow points are left out: FaceMesh's brow row runs ~0.1 eye distances from the template's.
+FACEMESH_LANDMARKS = {
+    "nose_tip": 4, "nose_bridge": 8, "subnasal": 164, "alar_left": 331, "alar_right": 102,
+    "upper_lip": 0, "lower_lip": 16, "chin": 200, "eye_inner_left": 382, "eye_inner_right": 155,
+    "eye_outer_left": 263, "eye_outer_right": 33, "mouth_corner_left": 291,
+    "mouth_corner_right": 61, "eyelid_upper_left": 386, "eyelid_upper_right": 27,
+    "jaw_left": 397, "jaw_right": 172,
+}
 NOT_FOUND = ("no face found on the mesh; select the head object, apply its rotation "
              "(Object > Apply > Rotation & Scale), or place the landmarks by hand")
 
@@ -77,12 +91,16 @@ class FoundFace:
     def hits(self):
         return self.triangle >= 0
 
+    def landmarks(self):
+        """{project landmark name: (3,) point} for the FACEMESH_LANDMARKS points that hit."""
+        return {name: self.points[i] for name, i in FACEMESH_LANDMARKS.items() if self.triangle[i] >= 0}
+
 
 @dataclass(frozen=True)
 class _Candidate:
     score: float
-    camera: Camera
-    detection: face_models.FaceDetection   # in the render's own pixels
+    view: Render
+    detection: face_models.FaceDetection   # in the view's own pixels
 
 
 class _Models:
@@ -105,12 +123,13 @@ def find_face(vertices, triangles):
         raise ExCloneError("the mesh has no triangles or non-finite vertices; " + NOT_FOUND)
     normals = _shading_normals(vertices, triangles)
     models = _Models()
-    candidates = sorted(_search(vertices, triangles, normals, models), key=lambda c: -c.score)
-    for candidate in candidates[:CANDIDATES]:
-        # the checks on the close render are strict: the first candidate passing them is the face
-        found = _refined(vertices, triangles, normals, models, candidate)
-        if found is not None:
-            return found
+    for directions in SEARCH_DIRECTIONS:
+        candidates = _search(vertices, triangles, normals, models, directions)
+        for candidate in sorted(candidates, key=lambda c: -c.score)[:CANDIDATES]:
+            # the checks on the close render are strict: the first candidate passing them is it
+            found = _refined(vertices, triangles, normals, models, candidate)
+            if found is not None:
+                return found
     raise ExCloneError(NOT_FOUND)
 
 
@@ -132,17 +151,17 @@ def _whole_view(vertices, direction):
     return Camera.looking(centre, direction, up, max(width, 1e-12), RENDER_SIZE)
 
 
-def _search(vertices, triangles, normals, models):
-    """Every detection in every search view, roll and crop, in its render's pixels."""
+def _search(vertices, triangles, normals, models, directions):
+    """Every detection in the views from these directions, in every roll and crop."""
     candidates = []
-    for direction in SEARCH_DIRECTIONS:
+    for direction in directions:
         view = render(vertices, triangles, _whole_view(vertices, direction), normals)
         for roll in range(4):
             image = _turned(view.image, roll)
             for crop_image, offset in _crops(image):
                 for detection in models.detector.detect(crop_image):
                     unrolled = _unrolled(detection, offset, roll, RENDER_SIZE)
-                    candidates.append(_Candidate(detection.score, view.camera, unrolled))
+                    candidates.append(_Candidate(detection.score, view, unrolled))
     return candidates
 
 
@@ -204,9 +223,8 @@ def _frame(points, canonical):
 
 def _refined(vertices, triangles, normals, models, candidate):
     """The candidate checked by FaceMesh and refined by close renders; None if it is no face."""
-    view = render(vertices, triangles, candidate.camera, normals)
     points, ids, presence = _landmarks_on_surface(
-        view, models, face_models.roi_from_detection(candidate.detection))
+        candidate.view, models, face_models.roi_from_detection(candidate.detection))
     if presence < face_models.FACE_PRESENCE_THRESHOLD:
         return None
     detection_score = 0.0

@@ -120,8 +120,11 @@ def render(vertices, triangles, camera, normals=None):
     depth = np.full(size * size, -np.inf)
     winner = np.full(size * size, -1, dtype=np.int64)
     weights = np.zeros((size * size, 3))
-    for batch in _batches(projected, triangles, size):
-        _rasterise(projected, triangles, batch, size, depth, winner, weights)
+    low, extent = _pixel_boxes(projected[triangles], size)
+    count = extent[:, 0] * extent[:, 1]
+    for batch in _batches(count):
+        _rasterise(projected[triangles[batch]], batch, low[batch], extent[batch], size,
+                   depth, winner, weights)
     seen = winner >= 0
     normal = np.einsum("pc,pcd->pd", weights[seen], normals[triangles[winner[seen]]])
     length = np.linalg.norm(normal, axis=1)
@@ -133,23 +136,24 @@ def render(vertices, triangles, camera, normals=None):
                   vertices=vertices, triangles=triangles)
 
 
-def _pixel_boxes(projected, triangles, size):
-    """Per triangle: the first pixel column/row whose centre may be inside, and how many."""
-    xy = projected[:, :2][triangles]                                       # (m, 3, 2)
-    low = np.clip(np.ceil(xy.min(axis=1)), 0, size).astype(np.int64)
-    high = np.clip(np.floor(xy.max(axis=1)), -1, size - 1).astype(np.int64)
+def _pixel_boxes(corners, size):
+    """Per triangle (projected corners (m, 3, 3)): the first pixel column and row whose centre
+    may be inside it, and how many columns and rows."""
+    xy = corners[:, :, :2]
+    smallest = np.minimum(np.minimum(xy[:, 0], xy[:, 1]), xy[:, 2])   # faster than min(axis=1)
+    largest = np.maximum(np.maximum(xy[:, 0], xy[:, 1]), xy[:, 2])
+    low = np.clip(np.ceil(smallest), 0, size).astype(np.int64)
+    high = np.clip(np.floor(largest), -1, size - 1).astype(np.int64)
     return low, np.maximum(high - low + 1, 0)
 
 
-def _batches(projected, triangles, size):
-    """Triangle ids in batches of at most PAIRS_PER_BATCH candidate pixels (a bigger triangle
-    is a batch of its own)."""
-    _, extent = _pixel_boxes(projected, triangles, size)
-    count = extent[:, 0] * extent[:, 1]
+def _batches(count):
+    """Ids of the triangles with candidate pixels (count per triangle), in batches of at most
+    PAIRS_PER_BATCH candidates (a bigger triangle is a batch of its own)."""
     candidates = np.flatnonzero(count > 0)
     cumulative = np.cumsum(count[candidates])
-    starts = np.searchsorted(cumulative, np.arange(0, cumulative[-1] if len(cumulative) else 0,
-                                                   PAIRS_PER_BATCH), side="right")
+    total = cumulative[-1] if len(cumulative) else 0
+    starts = np.searchsorted(cumulative, np.arange(0, total, PAIRS_PER_BATCH), side="right")
     bounds = np.unique(np.concatenate([starts, [len(candidates)]]))
     return [candidates[a:b] for a, b in zip(bounds[:-1], bounds[1:]) if b > a]
 
@@ -172,9 +176,9 @@ def _plane_coefficients(corners):
     return np.stack([b1, b2, z], axis=1)
 
 
-def _rasterise(projected, triangles, ids, size, depth, winner, weights):
-    """Z-buffer one batch of triangles into depth/winner/weights (flat per-pixel buffers)."""
-    low, extent = _pixel_boxes(projected, triangles[ids], size)
+def _rasterise(corners, ids, low, extent, size, depth, winner, weights):
+    """Z-buffer one batch of triangles (ids, projected corners, pixel boxes) into depth, winner
+    and weights (flat per-pixel buffers)."""
     count = extent[:, 0] * extent[:, 1]
     owner = np.repeat(np.arange(len(ids), dtype=np.int32), count)
     local = np.arange(count.sum(), dtype=np.int32) - np.repeat(
@@ -182,7 +186,7 @@ def _rasterise(projected, triangles, ids, size, depth, winner, weights):
     width = extent[:, 0].astype(np.int32)[owner]
     cols = low[:, 0].astype(np.int32)[owner] + local % width
     rows = low[:, 1].astype(np.int32)[owner] + local // width
-    planes = _plane_coefficients(projected[triangles[ids]])[owner]        # (p, 3, 3)
+    planes = _plane_coefficients(corners)[owner]                           # (p, 3, 3)
     values = planes[:, :, 0] * cols[:, None] + planes[:, :, 1] * rows[:, None] + planes[:, :, 2]
     b1, b2, z = values[:, 0], values[:, 1], values[:, 2]
     inside = (b1 >= -1e-9) & (b2 >= -1e-9) & (b1 + b2 <= 1.0 + 1e-9)

@@ -180,11 +180,15 @@ class WeightSolver:
         self._q, self._r = np.linalg.qr(np.vstack((a, np.sqrt(mu) * np.eye(len(shapes)))))
         self._q = self._q[: a.shape[0]]          # the ridge rows' right-hand side is zero
 
-    def solve(self, displacement):
-        """displacement: (m, 3) head-motion-free landmarks minus the actor's neutral."""
+    def solve(self, displacement, rows=None, targets=None):
+        """displacement: (m, 3) head-motion-free landmarks minus the actor's neutral. rows (k, N)
+        and targets (k,): further measurements rows @ w ~ targets (the eyes' lids and gaze,
+        core.eyes), weighed by their own scale, in the same bounded solve."""
         d = np.asarray(displacement, dtype=np.float64).reshape(-1) * self._row_scale
-        c = self._q.T @ d
-        result = lsq_linear(self._r, c, bounds=(0.0, 1.0), method="bvls")
+        matrix, c = self._r, self._q.T @ d
+        if rows is not None:
+            matrix, c = np.vstack((matrix, rows)), np.concatenate((c, targets))
+        result = lsq_linear(matrix, c, bounds=(0.0, 1.0), method="bvls")
         return result.x
 
     def solve_take(self, displacements):
