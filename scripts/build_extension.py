@@ -49,7 +49,7 @@ PIP_PLATFORMS = {
     "macos-arm64": ["macosx_13_0_arm64"],
     "macos-x64": ["macosx_13_0_x86_64"],
 }
-MODELS = ("face_detection_short_range.tflite", "face_landmark.tflite")
+MODELS = ("face_detection_short_range.tflite", "face_landmark.tflite", "iris_landmark.tflite")
 MODELS_LICENCE = "LICENSE-mediapipe-Apache-2.0.txt"
 STAGE_IGNORE = shutil.ignore_patterns("__pycache__", "*.pyc", "tests", ".*")
 # The project's pip.conf lists file:// indexes that lack most projects; pip warns for each.

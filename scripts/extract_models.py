@@ -1,4 +1,4 @@
-"""Copy the two face models and the licence out of a mediapipe wheel (a zip) into a folder.
+"""Copy the three face models (detector, FaceMesh, iris) and the licence out of a mediapipe wheel (a zip) into a folder.
 
 Usage: python scripts/extract_models.py MEDIAPIPE.whl OUT_DIR
 """
@@ -9,6 +9,7 @@ from pathlib import Path
 MODELS = {
     "mediapipe/modules/face_detection/face_detection_short_range.tflite",
     "mediapipe/modules/face_landmark/face_landmark.tflite",
+    "mediapipe/modules/iris_landmark/iris_landmark.tflite",
 }
 
 

@@ -1,7 +1,7 @@
 """Face detection and 468-point face landmarks from MediaPipe's models, run by OpenCV's dnn module
 (docs/method.md §10).
 
-The two TFLite models come from the mediapipe 0.10.21 wheel (extracted by scripts/setup.sh into
+The three TFLite models come from the mediapipe 0.10.21 wheel (extracted by scripts/setup.sh into
 exclone_addon/models/); mediapipe itself is never imported. Pre- and post-processing follow
 MediaPipe's graphs (modules/face_detection/face_detection_short_range.pbtxt + face_detection.pbtxt,
 modules/face_landmark/face_landmark_cpu.pbtxt, face_detection_front_detection_to_roi.pbtxt and
@@ -13,6 +13,11 @@ face_landmark_landmarks_to_roi.pbtxt):
   logit score per anchor; weighted non-maximum suppression at IoU 0.3.
 - FaceMesh: a square, rotated region of interest warped to 192x192 RGB in [0, 1]; 1404 values
   (468 x, y, z in units of the 192-pixel crop) and one face-presence logit.
+- Iris (modules/iris_landmark/iris_landmark_cpu.pbtxt, iris_landmark_left_and_right_cpu.pbtxt):
+  per eye a square region 2.3 times the distance between FaceMesh's two corners of that eye,
+  turned so that the corners are level, warped to 64x64 RGB in [0, 1]; the image-right eye is
+  mirrored so that the model always sees an image-left eye (outer corner on the left). 213 values
+  (71 eye-contour and brow points x, y, z) and 15 (5 iris points: centre first) in crop units.
 
 Pixel coordinates everywhere are OpenCV's: the centre of pixel (column i, row j) is (i, j).
 """
@@ -27,10 +32,19 @@ from .errors import ExCloneError
 
 DETECTOR_MODEL = "face_detection_short_range.tflite"
 LANDMARK_MODEL = "face_landmark.tflite"
+IRIS_MODEL = "iris_landmark.tflite"
 
 DETECTOR_SIZE = 128
 LANDMARK_SIZE = 192
 NUM_LANDMARKS = 468
+IRIS_SIZE = 64
+NUM_EYE_CONTOUR = 71
+NUM_IRIS = 5
+# FaceMesh's corners of each eye, image-left eye (outer, inner) then image-right eye (inner,
+# outer): left to right in an upright face, as MediaPipe's iris graph takes them.
+EYE_CORNERS = ((33, 133), (362, 263))
+# The eye region is the corner distance times this, square (MediaPipe's 2.3).
+EYE_ROI_SCALE = 2.3
 # MediaPipe's thresholds: detection score, NMS overlap, face presence (face_landmark_cpu.pbtxt).
 MIN_DETECTION_SCORE = 0.5
 NMS_IOU_THRESHOLD = 0.3
@@ -291,3 +305,77 @@ class FaceLandmarker:
             raise ExCloneError(f"{LANDMARK_MODEL} is not the expected FaceMesh model "
                                f"(outputs of sizes {sorted(by_size)}); run scripts/setup.sh again")
         return by_size[NUM_LANDMARKS * 3].reshape(-1), float(by_size[1].reshape(-1)[0])
+
+
+@dataclass(frozen=True)
+class EyeLandmarks:
+    """The iris model's points for both eyes, in image pixels; index 0 is the image-left eye (the
+    subject's right), 1 the image-right eye. Contour point order is the model's, the same for
+    both eyes: 0 outer corner, 1-7 lower lid outer to inner, 8 inner corner, 9-15 upper lid
+    outer to inner, then two rings around the eye and the brow. Iris: centre, then four points on
+    its rim."""
+    contours: np.ndarray   # (2, 71, 2)
+    irises: np.ndarray     # (2, 5, 2)
+
+
+def eye_rois(landmarks):
+    """The iris model's two regions (image-left eye, image-right eye) from FaceMesh's points."""
+    points = np.asarray(landmarks, float)[:, :2]
+    rois = []
+    for start, end in EYE_CORNERS:
+        a, b = points[start], points[end]
+        direction = b - a
+        rois.append(FaceRoi(centre=(a + b) / 2.0, size=float(np.hypot(*direction)) * EYE_ROI_SCALE,
+                            angle=float(np.arctan2(direction[1], direction[0]))))
+    return rois
+
+
+def _mirrored(matrix, crop_size):
+    """A crop->image affine matrix that reads the crop mirrored left to right (pixel centres)."""
+    flip = np.array([[-1.0, 0.0, crop_size - 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
+    return matrix @ flip
+
+
+class IrisLandmarker:
+    """MediaPipe's iris model on both eyes of a face, in one batch. Loads the model once."""
+
+    def __init__(self, models_dir=data.MODELS_DIR):
+        self.net = _load_net(IRIS_MODEL, models_dir)
+        self.output_names = self.net.getUnconnectedOutLayersNames()
+
+    def _crop_matrices(self, landmarks):
+        left, right = eye_rois(landmarks)
+        return (left.crop_to_image(IRIS_SIZE),
+                _mirrored(right.crop_to_image(IRIS_SIZE), IRIS_SIZE))
+
+    def crops(self, image_bgr, landmarks):
+        """The two 64x64 BGR eye images the model sees (the image-right eye mirrored)."""
+        image = checked_bgr(image_bgr)
+        return [cv2.warpAffine(image, matrix, (IRIS_SIZE, IRIS_SIZE),
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REPLICATE)
+                for matrix in self._crop_matrices(landmarks)]
+
+    def eyes(self, image_bgr, landmarks):
+        """EyeLandmarks for an 8-bit BGR image and FaceMesh's (468, 2 or 3) points in it."""
+        matrices = self._crop_matrices(landmarks)
+        blob = cv2.dnn.blobFromImages(self.crops(image_bgr, landmarks), 1.0 / 255.0, swapRB=True)
+        self.net.setInput(blob)
+        contours, irises = self._split_outputs(self.net.forward(self.output_names))
+        both = np.concatenate([contours, irises], axis=1)[..., :2].astype(np.float64)
+        # continuous crop coordinates (0..64) -> pixel centres -> image pixels, per eye
+        image_points = np.stack([(eye - 0.5) @ matrix[:, :2].T + matrix[:, 2]
+                                 for eye, matrix in zip(both, matrices)])
+        return EyeLandmarks(contours=image_points[:, :NUM_EYE_CONTOUR],
+                            irises=image_points[:, NUM_EYE_CONTOUR:])
+
+    @staticmethod
+    def _split_outputs(outputs):
+        # Told apart by size, as FaceMesh's; a batch of two eyes comes out as one row each
+        by_size = {out.size: out for out in outputs}
+        sizes = (2 * NUM_EYE_CONTOUR * 3, 2 * NUM_IRIS * 3)
+        if set(by_size) != set(sizes):
+            raise ExCloneError(f"{IRIS_MODEL} is not the expected iris model (outputs of sizes "
+                               f"{sorted(by_size)} for two eyes); run scripts/setup.sh again")
+        return (by_size[sizes[0]].reshape(2, NUM_EYE_CONTOUR, 3),
+                by_size[sizes[1]].reshape(2, NUM_IRIS, 3))

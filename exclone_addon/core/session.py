@@ -1,10 +1,12 @@
 """Live face tracking, one frame at a time: the per-frame session behind one step().
 
 Per frame: BlazeFace on the first frame and whenever tracking is lost, otherwise the region the
-previous frame's landmarks give; FaceMesh's 468 points (docs/method.md §10); the tracker's 3D
+previous frame's landmarks give; FaceMesh's 468 points and the iris model's eye points
+(docs/method.md §10); the tracker's 3D
 shape model fitted to them with head pose, warm-started from the previous frame, the actor's
 neutral calibrated over the first frames with a face (core.tracking, §11); One Euro filters on
-pose, shape and landmarks; then, with an avatar, its shape-key weights (core.retarget, §12).
+pose, shape and landmarks; then, with an avatar, its shape-key weights (core.retarget, §12), the
+eyes' lids and gaze (core.eyes) as further targets of the same bounded solve.
 """
 import time
 from dataclasses import dataclass, field
@@ -12,7 +14,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import data, face_models
+from . import data, eyes, face_models
 from .errors import ExCloneError
 from .retarget import WeightSolver, map_blendshapes, refine_take
 from .tracker_model import load_tracker_model
@@ -27,7 +29,7 @@ MODEL_TO_BLENDER = Rotation.from_euler("x", 90, degrees=True)
 # change in test_live's figures at 3 decimals.
 FIT_TOLERANCE_PX = 0.05
 # The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs).
-STAGES = ("detect", "landmarks", "fit", "weights")
+STAGES = ("detect", "landmarks", "iris", "fit", "weights")
 
 
 class LandmarkFilter:
@@ -68,6 +70,7 @@ class FrameResult:
     translation: np.ndarray = None    # (3,) camera space, model units (cm)
     head_rotation: Rotation = None    # relative to the calibrated neutral, Blender axes
     weights: dict = None              # shape-key name -> 0..1
+    eyes: face_models.EyeLandmarks = None   # the iris model's points, image pixels
     stage_ms: dict = field(default_factory=dict)
     status: str = ""
 
@@ -108,11 +111,14 @@ class FaceTrackingSession:
         self.still_images = bool(still_images)
         self.detector = face_models.FaceDetector(models_dir)
         self.landmarker = face_models.FaceLandmarker(models_dir)
+        self.iris = face_models.IrisLandmarker(models_dir)
         self.model = (tracker_model or load_tracker_model()).shape_model
         self._fitter = None           # the canonical model's fitter until calibrated
         self.neutral = None           # (468, 3) the actor's calibrated neutral (model space)
         self.neutral_rotation = None  # mean head pose over the calibration frames
         self.solver = None
+        self.eye_neutral = None       # the actor's neutral eyes (eyes.EyeReading)
+        self._eye_targets = None
         self.take = RecordedTake()
         self._frame_size = None       # (width, height) of the take's first frame
         self._roi = None
@@ -120,6 +126,7 @@ class FaceTrackingSession:
         self._last = None             # the last FrameResult with a face
         self._pending = 0             # calibration frames still wanted (0: not calibrating)
         self._calibration_points = []
+        self._calibration_eyes = []
         self._reset_filters()
         self.calibrate()
 
@@ -135,6 +142,7 @@ class FaceTrackingSession:
         if self._pending < 1:
             raise ExCloneError("calibration needs at least one frame")
         self._calibration_points = []
+        self._calibration_eyes = []
 
     def _reset_filters(self):
         # Cut-offs in Hz at rest; beta raises them with speed (rad/s, cm/s, parameter units/s,
@@ -211,7 +219,10 @@ class FaceTrackingSession:
             return self._lost(stage_ms)
         roi = face_models.roi_from_landmarks(points)
         self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
-        return self._track(points, timestamp, stage_ms, restart=detected)
+        start = time.perf_counter()
+        eye_points = self.iris.eyes(image, points)
+        stage_ms["iris"] = 1000 * (time.perf_counter() - start)
+        return self._track(points, timestamp, stage_ms, restart=detected, eye_points=eye_points)
 
     def step_landmarks(self, landmarks, timestamp, image_size=None):
         """One frame from given landmarks (468, 2 or 3) in pixels, past the image models (for
@@ -242,7 +253,7 @@ class FaceTrackingSession:
                            stage_ms=stage_ms, status=status)
 
     # -- shape fit and calibration (docs/method.md §11), weights (§12)
-    def _track(self, points, timestamp, stage_ms, restart):
+    def _track(self, points, timestamp, stage_ms, restart, eye_points=None):
         if restart or self.still_images:
             self._reset_filters()
             if self.still_images:
@@ -251,15 +262,16 @@ class FaceTrackingSession:
         fit = self._fitter.fit(points[:, :2], previous=self._previous_fit)
         self._previous_fit = fit
         stage_ms["fit"] = 1000 * (time.perf_counter() - start)
+        reading = eyes.read_eyes(eye_points) if eye_points is not None else None
         if self._pending:
-            fit = self._calibration_frame(points, fit, stage_ms)
+            fit = self._calibration_frame(points, reading, fit, stage_ms)
         pose = self._shown_pose(fit, points, timestamp)
         head_rotation = weights = None
         if self.calibrated:
             relative = self.neutral_rotation.inv() * pose.rotation     # in the face's own axes
             head_rotation = MODEL_TO_BLENDER * relative * MODEL_TO_BLENDER.inv()
             if self.solver is not None:
-                weights = self._weights(pose.params, timestamp, stage_ms)
+                weights = self._weights(pose.params, reading, timestamp, stage_ms)
         if self._pending:
             status = f"calibrating {len(self._calibration_points)}/{self._pending}: hold a neutral face"
         else:
@@ -267,15 +279,17 @@ class FaceTrackingSession:
         result = FrameResult(found=True, landmarks=pose.landmarks,
                              ibug68=pose.landmarks[face_models.IBUG68_FROM_MEDIAPIPE, :2],
                              rotation=pose.rotation, translation=pose.translation,
-                             head_rotation=head_rotation, weights=weights,
+                             head_rotation=head_rotation, weights=weights, eyes=eye_points,
                              stage_ms=stage_ms, status=status)
         self._last = result
         return result
 
-    def _calibration_frame(self, points, fit, stage_ms):
-        """Collects a calibration frame; on the last one calibrates. Returns the frame's fit
-        (refitted by the calibration when it ran)."""
+    def _calibration_frame(self, points, reading, fit, stage_ms):
+        """Collects a calibration frame (its points and eye reading); on the last one
+        calibrates. Returns the frame's fit (refitted by the calibration when it ran)."""
         self._calibration_points.append(points[:, :2].copy())
+        if reading is not None:
+            self._calibration_eyes.append(reading)
         if len(self._calibration_points) < self._pending:
             return fit
         start = time.perf_counter()
@@ -291,11 +305,16 @@ class FaceTrackingSession:
                      self._filters["params"](fit.params, timestamp),
                      self._filters["landmarks"](points, timestamp))
 
-    def _weights(self, params, timestamp, stage_ms):
-        """The avatar's shape-key weights for these shape parameters; the frame is recorded."""
+    def _weights(self, params, reading, timestamp, stage_ms):
+        """The avatar's shape-key weights for these shape parameters and the eyes' reading (the
+        eyes' rows join the solve when both the reading and the eyes' neutral exist); the frame
+        is recorded."""
         start = time.perf_counter()
         displacement = self._fitter.model.shape(params) - self.neutral
-        values = self.solver.solve(displacement)
+        if reading is not None and self._eye_targets is not None:
+            values = self.solver.solve(displacement, *self._eye_targets.rows(reading))
+        else:
+            values = self.solver.solve(displacement)
         stage_ms["weights"] = 1000 * (time.perf_counter() - start)
         self.take.timestamps.append(float(timestamp))
         self.take.displacements.append(displacement)
@@ -309,13 +328,18 @@ class FaceTrackingSession:
         self._fitter = fitter
         self.neutral_rotation = Rotation.concatenate([f.rotation for f in fits]).mean()
         self._previous_fit = fits[-1]
+        self.eye_neutral = (eyes.neutral_reading(self._calibration_eyes)
+                            if self._calibration_eyes else None)
         self._pending = 0
         self._calibration_points = []
+        self._calibration_eyes = []
         self.take = RecordedTake()
         self._reset_filters()
         if self.avatar is not None:
             mapped = map_blendshapes(self.avatar.neutral, self.avatar.deltas, neutral)
             self.solver = WeightSolver(mapped, self.avatar.names)
+            self._eye_targets = None if self.eye_neutral is None else eyes.EyeTargets(
+                self.avatar.names, self.eye_neutral, self.solver.scale)
 
     def refine_take(self, closeness=1.0, iterations=20):
         """Jointly refine the blendshapes and the weights over the recorded take (Liu et al.,

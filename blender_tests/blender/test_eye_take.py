@@ -1,0 +1,74 @@
+"""Blinks and gaze through the image models: the bundled ICT head rendered in background Blender
+blinking (150 ms blinks among them) and looking about with known eye turns up to 20 degrees
+(blender_tests/helpers/eye_takes.py), tracked by FaceTrackingSession.step as a camera's frames
+are, onto the same head (so the ideal answer is the truth)."""
+import cv2
+import numpy as np
+import pytest
+
+from exclone_addon.core.library import load_library
+from exclone_addon.core.retarget import AvatarRig
+from exclone_addon.core.session import FaceTrackingSession
+from exclone_addon.core.tracker_model import read_tracker_locations
+from blender_tests.helpers.eye_takes import BLINKS, CALIBRATION_FRAMES, FPS, rendered_eye_take
+
+
+@pytest.fixture(scope="module")
+def tracked_eyes():
+    take = rendered_eye_take()
+    library = load_library()
+    avatar = AvatarRig.from_locations(library.mesh.vertices, library.deltas, library.names,
+                                      read_tracker_locations())
+    session = FaceTrackingSession(avatar=avatar, camera=take.camera,
+                                  calibration_frames=CALIBRATION_FRAMES)
+    names = ("eyeBlink_L", "eyeBlink_R", "eyeLookOut_L", "eyeLookIn_L", "eyeLookOut_R",
+             "eyeLookIn_R", "eyeLookUp_L", "eyeLookUp_R", "eyeLookDown_L", "eyeLookDown_R")
+    weights = {name: np.full(len(take.frames), np.nan) for name in names}
+    for k, path in enumerate(take.frames):
+        result = session.step(cv2.imread(str(path)), k / FPS)
+        assert result.found, f"no face in frame {k}"
+        if result.weights is not None:
+            for name in names:
+                weights[name][k] = result.weights[name]
+    w = weights
+    yaw = w["eyeLookOut_L"] + w["eyeLookIn_R"] - w["eyeLookIn_L"] - w["eyeLookOut_R"]
+    pitch = w["eyeLookUp_L"] + w["eyeLookUp_R"] - w["eyeLookDown_L"] - w["eyeLookDown_R"]
+    return take, weights, yaw, pitch
+
+
+def blink_frames(start, length):
+    return slice(start, start + length)
+
+
+def test_every_blink_is_found_in_both_eyes_short_ones_included(tracked_eyes):
+    take, weights, _, _ = tracked_eyes
+    for start, length in BLINKS:
+        for name in ("eyeBlink_L", "eyeBlink_R"):
+            peak = np.max(weights[name][blink_frames(start, length)])
+            assert peak > 0.5, f"the {length}-frame blink at frame {start}: {name} peaks at {peak:.2f}"
+
+
+def test_no_false_blink(tracked_eyes):
+    take, weights, _, _ = tracked_eyes
+    open_eyes = take.blink == 0
+    open_eyes[:CALIBRATION_FRAMES] = False
+    for name in ("eyeBlink_L", "eyeBlink_R"):
+        assert np.max(weights[name][open_eyes]) < 0.5
+
+
+def test_gaze_follows_the_eyes(tracked_eyes):
+    """The ARKit reading yaw = Out_L + In_R - In_L - Out_R (and pitch = Up - Down) against the
+    true eye turn over the frames with open eyes."""
+    take, _, yaw, pitch = tracked_eyes
+    frames = np.flatnonzero(take.blink == 0)
+    frames = frames[frames >= CALIBRATION_FRAMES]
+    assert np.corrcoef(yaw[frames], take.yaw[frames])[0, 1] >= 0.9
+    assert np.corrcoef(pitch[frames], take.pitch[frames])[0, 1] >= 0.9
+
+
+def test_a_blink_is_not_read_as_looking_down(tracked_eyes):
+    take, _, _, pitch = tracked_eyes
+    for start, length in BLINKS:
+        before = pitch[start - 1]
+        during = pitch[blink_frames(start, length)]
+        assert np.min(during) > before - 0.1, (start, before, during)

@@ -1,0 +1,106 @@
+"""core.eyes and face_models.IrisLandmarker on a real photograph (skimage's astronaut, public
+domain) and on known geometry: where the iris model puts the pupils and eye corners, readings
+that do not change as the face moves, the eyes' rows of the weight solve."""
+import cv2
+import numpy as np
+import pytest
+from skimage import data
+
+from exclone_addon.core import eyes
+from exclone_addon.core.face_models import (EyeLandmarks, FaceDetector, FaceLandmarker,
+                                            IrisLandmarker, roi_from_detection,
+                                            roi_from_landmarks)
+from exclone_addon.core.retarget import WeightSolver
+from blender_tests.core.test_face_models import HAND_POINTS, HAND_PUPILS
+
+
+@pytest.fixture(scope="module")
+def astronaut_eyes():
+    """(image, FaceMesh points, EyeLandmarks) of the astronaut, and of her mirror image."""
+    detector, landmarker, iris = FaceDetector(), FaceLandmarker(), IrisLandmarker()
+    found = []
+    image = cv2.cvtColor(data.astronaut(), cv2.COLOR_RGB2BGR)
+    for picture in (image, np.ascontiguousarray(image[:, ::-1])):
+        points, _ = landmarker.landmarks(picture, roi_from_detection(detector.detect(picture)[0]))
+        points, _ = landmarker.landmarks(picture, roi_from_landmarks(points))
+        found.append((picture, points, iris.eyes(picture, points)))
+    return found
+
+
+def test_iris_centres_on_the_hand_measured_pupils_and_corners(astronaut_eyes):
+    _, _, eye_points = astronaut_eyes[0]
+    for k in range(2):
+        assert np.linalg.norm(eye_points.irises[k, 0] - HAND_PUPILS[k]) < 2.5
+    # contour 0 is the outer corner of each eye, 8 the inner one (iBUG 36, 39, 42, 45)
+    corners = {36: eye_points.contours[0, 0], 39: eye_points.contours[0, 8],
+               42: eye_points.contours[1, 8], 45: eye_points.contours[1, 0]}
+    for ibug, point in corners.items():
+        assert np.linalg.norm(point - HAND_POINTS[ibug]) < 4.0, ibug
+
+
+def test_the_mirrored_face_reads_the_same_with_the_eyes_swapped(astronaut_eyes):
+    """The image-right eye is mirrored before the model: a mirrored photograph gives each eye
+    the crop the other eye had, so the readings swap (gaze x changes sign)."""
+    (_, _, plain), (_, _, mirrored) = astronaut_eyes
+    a, b = eyes.read_eyes(plain), eyes.read_eyes(mirrored)
+    np.testing.assert_allclose(a.upper, b.upper[::-1], atol=0.02)
+    np.testing.assert_allclose(a.lower, b.lower[::-1], atol=0.02)
+    np.testing.assert_allclose(a.iris[:, 0], -b.iris[::-1, 0], atol=0.02)
+    np.testing.assert_allclose(a.iris[:, 1], b.iris[::-1, 1], atol=0.02)
+    assert np.all(a.opening > 0.15), "the astronaut's eyes are open"
+
+
+def test_reading_does_not_change_as_the_face_moves_nearer_or_rolls(astronaut_eyes):
+    _, _, eye_points = astronaut_eyes[0]
+    reading = eyes.read_eyes(eye_points)
+    angle = np.radians(25)
+    turn = 1.7 * np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+    moved = EyeLandmarks(contours=eye_points.contours @ turn.T + (40, -30),
+                         irises=eye_points.irises @ turn.T + (40, -30))
+    again = eyes.read_eyes(moved)
+    for name in ("upper", "lower", "iris"):
+        np.testing.assert_allclose(getattr(again, name), getattr(reading, name), atol=1e-9)
+
+
+ARKIT_EYES = [f"{key}{side}" for side in eyes.SIDES for key in
+              ("eyeBlink", "eyeWide", "eyeSquint", "eyeLookUp", "eyeLookDown", "eyeLookIn", "eyeLookOut")]
+
+
+def solve_eyes_only(reading, neutral, names=ARKIT_EYES):
+    """The weights the eye rows alone ask for (landmark shapes that never move)."""
+    solver = WeightSolver(np.zeros((len(names), 10, 3)), names)
+    targets = eyes.EyeTargets(names, neutral, key_scale=1.0)
+    rows, values = targets.rows(reading)
+    return dict(zip(names, solver.solve(np.zeros((10, 3)), rows, values))), targets
+
+
+NEUTRAL = eyes.EyeReading(upper=np.array([0.2, 0.2]), lower=np.array([-0.12, -0.12]),
+                          iris=np.zeros((2, 2)))
+
+
+def test_rows_read_a_closed_eye_as_a_blink_and_hold_the_gaze():
+    opening = NEUTRAL.opening
+    looking = eyes.EyeReading(NEUTRAL.upper.copy(), NEUTRAL.lower.copy(), np.zeros((2, 2)))
+    looking.iris[:, 0] = eyes.EYE_RADIUS_WIDTHS * np.sin(np.radians(15))   # 15 deg to the left
+    weights, targets = solve_eyes_only(looking, NEUTRAL)
+    assert weights["eyeLookOut_L"] == pytest.approx(0.5, abs=0.02)
+    assert weights["eyeLookIn_R"] == pytest.approx(0.5, abs=0.02)
+    assert weights["eyeBlink_L"] < 0.05 and weights["eyeLookDown_L"] < 0.05
+    # closed: the upper lid down by 0.45 of the opening, the iris read far down (as the model
+    # guesses a hidden iris); the gaze holds the open eyes' 15 degrees
+    closed = eyes.EyeReading(NEUTRAL.upper - 0.45 * opening, NEUTRAL.lower + 0.1 * opening,
+                             looking.iris + [0.0, -0.2])
+    rows, values = targets.rows(closed)
+    solver = WeightSolver(np.zeros((len(ARKIT_EYES), 10, 3)), ARKIT_EYES)
+    weights = dict(zip(ARKIT_EYES, solver.solve(np.zeros((10, 3)), rows, values)))
+    for side in eyes.SIDES:
+        assert weights["eyeBlink" + side] > 0.9
+        assert weights["eyeLookDown" + side] < 0.05
+    assert weights["eyeLookOut_L"] == pytest.approx(0.5, abs=0.05)
+
+
+def test_an_avatar_without_arkit_eye_keys_gets_no_eye_rows():
+    targets = eyes.EyeTargets(["jawOpen", "smile"], NEUTRAL, key_scale=1.0)
+    assert targets.rows(NEUTRAL) == (None, None)
+    weights, _ = solve_eyes_only(NEUTRAL, NEUTRAL, names=["eyeBlink_L", "jawOpen"])
+    assert weights["eyeBlink_L"] < 1e-6

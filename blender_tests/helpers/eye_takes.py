@@ -1,0 +1,105 @@
+"""An eye take: the bundled ICT head facing the camera, blinking (eyeBlink_L/R, 150 ms blinks
+among them) and looking about (its eyeballs turned by known angles, up to 20 degrees), rendered
+in background Blender by scripts/render_faces.py and cached on disk by its recipe.
+"""
+import hashlib
+import sys
+import tempfile
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from exclone_addon.core.library import load_library
+from exclone_addon.core.tracker_model import read_tracker_locations
+from exclone_addon.core.tracking import FRONTAL, Camera
+from blender_tests.helpers.paths import REPO_ROOT
+
+sys.path.insert(0, str(REPO_ROOT / "scripts"))   # render_faces (rendering only)
+
+FPS = 30.0
+CALIBRATION_FRAMES = 30
+EYE_FRAMES = 240
+IMAGE_SIZE = (640, 480)
+DISTANCE_CM = 45.0
+GAZE_DEG = 20.0
+# (first frame, frames): blinks of 4 and 5 frames last 133-167 ms at 30 fps
+BLINKS = ((50, 5), (82, 4), (110, 8), (140, 5), (172, 4), (205, 6))
+EYE_CACHE = Path(tempfile.gettempdir()) / "exclone_eye_takes"
+EYE_TAKE_VERSION = 1      # bump when the recipe or the renderer changes
+
+
+def blink_profile(frames):
+    """A blink's weights over its frames: closing, closed, opening (peak 1)."""
+    phase = np.sin(np.pi * (np.arange(frames) + 0.5) / frames)
+    return np.clip(1.6 * phase, 0.0, 1.0)
+
+
+def eye_recipe(frames=EYE_FRAMES):
+    """(blink weight (T,), gaze yaw (T,), gaze pitch (T,) in degrees): yaw positive towards the
+    subject's left, pitch positive up; the first CALIBRATION_FRAMES are neutral, looking ahead."""
+    t = (np.arange(frames) - CALIBRATION_FRAMES) / FPS
+    yaw = GAZE_DEG * np.sin(2 * np.pi * 0.31 * t)
+    pitch = GAZE_DEG * np.sin(2 * np.pi * 0.19 * t + 0.7) - GAZE_DEG * np.sin(0.7)
+    pitch = np.clip(pitch, -GAZE_DEG, GAZE_DEG)
+    yaw[:CALIBRATION_FRAMES] = pitch[:CALIBRATION_FRAMES] = 0.0
+    blink = np.zeros(frames)
+    for start, length in BLINKS:
+        if start + length <= frames:
+            blink[start:start + length] = blink_profile(length)
+    return blink, yaw, pitch
+
+
+def turned_eyes(vertices, eyeballs, yaw_deg, pitch_deg):
+    """The head's vertices with both eyeballs (vertex range `eyeballs`) turned about their
+    centres: yaw about +Y (towards +X, the subject's left), then pitch up."""
+    turned = vertices.copy()
+    start, stop = eyeballs
+    balls = turned[start:stop]
+    rotation = Rotation.from_euler("yx", [yaw_deg, -pitch_deg], degrees=True)
+    for side in (balls[:, 0] < 0, balls[:, 0] >= 0):
+        points = balls[side]
+        centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
+        balls[side] = rotation.apply(points - centre) + centre
+    turned[start:stop] = balls
+    return turned
+
+
+def _key(frames):
+    text = f"v{EYE_TAKE_VERSION}-{frames}-{IMAGE_SIZE}-{DISTANCE_CM}-{BLINKS}-{GAZE_DEG}"
+    return hashlib.sha1(text.encode()).hexdigest()[:16]
+
+
+def rendered_eye_take(frames=EYE_FRAMES):
+    """The take's frames (PNG paths), its truth (blink, yaw, pitch), the camera and the CPU
+    seconds a frame took to render (0 when read from the cache)."""
+    blink, yaw, pitch = eye_recipe(frames)
+    folder = EYE_CACHE / _key(frames)
+    paths = [folder / f"frame_{k:04d}.png" for k in range(frames)]
+    seconds = 0.0
+    if not all(p.is_file() for p in paths):
+        seconds = _render(folder, paths, blink, yaw, pitch)
+    return SimpleNamespace(frames=paths, blink=blink, yaw=yaw, pitch=pitch,
+                           camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds)
+
+
+def _render(folder, paths, blink, yaw, pitch):
+    import render_faces      # needs bpy
+    library = load_library()
+    vertices, parts = library.mesh.vertices, library.parts
+    located = read_tracker_locations().sample(vertices)
+    renderer = render_faces.FaceRenderer(
+        render_faces.rendered_triangles(library.mesh.triangles(), parts),
+        render_faces.vertex_colours(vertices, parts, located), IMAGE_SIZE)
+    blinks = [library.names.index(name) for name in ("eyeBlink_L", "eyeBlink_R")]
+    closing = library.deltas[blinks].sum(axis=0)
+    centre = located.mean(axis=0)
+    translation = np.array([0.0, 0.0, DISTANCE_CM])
+    folder.mkdir(parents=True, exist_ok=True)
+    start = time.process_time()
+    for k, path in enumerate(paths):
+        posed = turned_eyes(vertices + blink[k] * closing, parts["eyeballs"], yaw[k], pitch[k])
+        renderer.render(FRONTAL.apply(posed - centre) + translation, path)
+    return (time.process_time() - start) / len(paths)

@@ -1,0 +1,160 @@
+"""Eyes from the iris model: each eye's lids and gaze, read from its points and turned into
+targets of the weight solve (docs/method.md §10, §12).
+
+A reading measures everything in the eye's own frame: the line through its two corners (x along
+it, image-left to image-right; y up, perpendicular to it), in units of the corner distance, so
+it does not change as the face moves in the image, nearer or farther or rolled. Per eye:
+- the heights of the upper and lower lid above the corner line (the middle three points of each
+  lid); their difference is the opening;
+- the iris centre relative to the corners' midpoint.
+Eye 0 is the image-left eye (the subject's right, ARKit's _R), eye 1 the image-right eye (_L).
+
+Targets, relative to the actor's neutral reading (calibrated with the neutral face), against
+ARKit's eye keys by name (an avatar without them gets no eye rows):
+- lids: each lid's height change as a fraction of the neutral opening, against what each key
+  does to it as the iris model reads it (LID_CHANGES): a blink mostly lowers the upper lid, a
+  squint raises the lower one, wide raises the upper one;
+- gaze: the iris's shift, as an angle of the eyeball (EYE_RADIUS_WIDTHS), against the eyeLook
+  keys: yaw = Out - In for the left eye (In - Out for the right), pitch = Up - Down, at
+  EYE_LOOK_FULL_DEG for a weight of 1. While the eyes are closing their irises are not read: the
+  gaze holds the last open reading, so a blink is never read as looking down.
+Each target row weighs EYE_TRUST times a typical key's landmark evidence: what the iris model
+reads of the eyes overrules what the face's landmarks suggest there.
+"""
+from dataclasses import dataclass
+
+import numpy as np
+
+# The iris model's contour ids (face_models.EyeLandmarks): corners and the middle of each lid.
+OUTER, INNER = 0, 8
+LOWER_LID = (3, 4, 5)
+UPPER_LID = (11, 12, 13)
+# ARKit's suffix of each eye in the reading's order.
+SIDES = ("_R", "_L")
+# The iris centre's distance from the eyeball's centre of rotation in eye widths (corner to
+# corner): about 10 mm over 29 mm in an adult eye.
+EYE_RADIUS_WIDTHS = 0.35
+# The eye turn an ARKit eyeLook weight of 1 stands for.
+EYE_LOOK_FULL_DEG = 30.0
+# What each ARKit eye key at 1 does to the lids as the iris model reads them: (key, change of the
+# upper lid's height, of the lower lid's), in units of the neutral opening. A closed eye's
+# contours keep about half the neutral gap, the upper lid coming most of the way (measured on
+# rendered blinks: -0.45 and +0.1); the lids follow the eyes a little as they look up or down.
+LID_CHANGES = (("eyeBlink", -0.45, 0.10), ("eyeWide", 0.30, 0.0), ("eyeSquint", 0.0, 0.25),
+               ("eyeLookUp", 0.15, 0.0), ("eyeLookDown", -0.15, 0.0))
+# The eyes are closing when their mean opening is below this fraction of the neutral one: their
+# irises are not read then. Both eyes are taken together: the first and last frames of a blink
+# read about 0.6-0.75 (the closing lids hide the iris and the model guesses it), looking down
+# by 20 degrees lowers one eye's upper lid to about 0.8 but hardly the other's.
+OPEN_FRACTION = 0.8
+# How much a target row counts against the landmarks, per unit of a key's mean landmark norm.
+EYE_TRUST = 30.0
+
+
+@dataclass
+class EyeReading:
+    """One frame's measures of both eyes (eye widths; see the module's docstring)."""
+    upper: np.ndarray     # (2,) upper-lid height above the corner line
+    lower: np.ndarray     # (2,) lower-lid height (negative: below the line)
+    iris: np.ndarray      # (2, 2) iris centre (x towards the image's right, y up)
+
+    @property
+    def opening(self):
+        return self.upper - self.lower
+
+
+def _eye_frame(left_corner, right_corner):
+    """(origin, x axis, y axis, width) of an eye from its corners in y-up coordinates."""
+    axis = right_corner - left_corner
+    width = float(np.hypot(*axis))
+    x = axis / max(width, 1e-12)
+    return (left_corner + right_corner) / 2.0, x, np.array([-x[1], x[0]]), max(width, 1e-12)
+
+
+def _measure(left_corner, right_corner, upper, lower, iris):
+    origin, x, y, width = _eye_frame(left_corner, right_corner)
+    heights = [float(np.mean((points - origin) @ y)) / width for points in (upper, lower)]
+    centre = (iris - origin) @ np.column_stack((x, y)) / width
+    return heights[0], heights[1], centre
+
+
+def read_eyes(eyes):
+    """EyeReading from face_models.EyeLandmarks (image pixels, y down)."""
+    flip = np.array([1.0, -1.0])
+    upper, lower, iris = np.zeros(2), np.zeros(2), np.zeros((2, 2))
+    for k in range(2):
+        contour, centre = eyes.contours[k] * flip, eyes.irises[k, 0] * flip
+        # eye 0's outer corner is on the image's left, eye 1's on its right
+        left, right = (OUTER, INNER) if k == 0 else (INNER, OUTER)
+        upper[k], lower[k], iris[k] = _measure(contour[left], contour[right],
+                                               contour[list(UPPER_LID)], contour[list(LOWER_LID)],
+                                               centre)
+    return EyeReading(upper, lower, iris)
+
+
+def neutral_reading(readings):
+    """The median of the calibration frames' readings."""
+    return EyeReading(np.median([r.upper for r in readings], axis=0),
+                      np.median([r.lower for r in readings], axis=0),
+                      np.median([r.iris for r in readings], axis=0))
+
+
+def gaze_degrees(reading, neutral):
+    """(2, 2) each eye's (yaw, pitch) in degrees from its neutral: yaw towards the subject's
+    left, pitch up."""
+    shift = (reading.iris - neutral.iris) / EYE_RADIUS_WIDTHS
+    return np.degrees(np.arcsin(np.clip(shift, -1.0, 1.0)))
+
+
+class EyeTargets:
+    """The eyes' rows of the weight solve for an avatar's keys (names) and the actor's neutral
+    eyes; key_scale: the mean squared landmark norm of a key in the solve (WeightSolver.scale).
+    Rows exist for the ARKit keys the avatar has (eyeBlink, eyeWide, eyeSquint, eyeLook*)."""
+
+    def __init__(self, names, neutral, key_scale):
+        self.neutral = neutral
+        self._row_weight = np.sqrt(EYE_TRUST * key_scale)
+        self._rows = [_eye_rows(names, side) for side in SIDES]
+        self._open_gaze = np.zeros((2, 2))
+
+    def rows(self, reading):
+        """(rows (k, N), targets (k,)) for one frame's EyeReading: rows @ weights ~ targets; None
+        twice when the avatar has none of the keys."""
+        opening0 = np.maximum(self.neutral.opening, 1e-12)
+        upper = (reading.upper - self.neutral.upper) / opening0
+        lower = (reading.lower - self.neutral.lower) / opening0
+        if np.mean(reading.opening / opening0) > OPEN_FRACTION:
+            self._open_gaze = gaze_degrees(reading, self.neutral)
+        rows, targets = [], []
+        for k, eye_rows in enumerate(self._rows):
+            values = (upper[k], lower[k], self._open_gaze[k, 0] / EYE_LOOK_FULL_DEG,
+                      self._open_gaze[k, 1] / EYE_LOOK_FULL_DEG)
+            for row, value in zip(eye_rows, values):
+                if row is not None:
+                    rows.append(row)
+                    targets.append(value)
+        if not rows:
+            return None, None
+        return self._row_weight * np.array(rows), self._row_weight * np.array(targets)
+
+
+def _eye_rows(names, side):
+    """(upper-lid row, lower-lid row, yaw row, pitch row) of one eye over the keys, each (N,) or
+    None when the avatar lacks all of its keys (LID_CHANGES; yaw towards the subject's left:
+    the left eye looks out, the right one in; pitch up)."""
+    index = {name: j for j, name in enumerate(names)}
+
+    def row(coefficients):
+        present = {name + side: c for name, c in coefficients if name + side in index and c}
+        if not present:
+            return None
+        values = np.zeros(len(names))
+        for name, c in present.items():
+            values[index[name]] = c
+        return values
+
+    outwards, inwards = ("eyeLookOut", "eyeLookIn") if side == "_L" else ("eyeLookIn", "eyeLookOut")
+    return (row([(key, up) for key, up, _ in LID_CHANGES]),
+            row([(key, down) for key, _, down in LID_CHANGES]),
+            row([(outwards, 1.0), (inwards, -1.0)]),
+            row([("eyeLookUp", 1.0), ("eyeLookDown", -1.0)]))
