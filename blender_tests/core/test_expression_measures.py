@@ -118,6 +118,28 @@ def test_edge_stretch_flips_and_motion_outside_have_known_answers():
     assert found["stretched"]["motion_outside"] == 0.0
 
 
+def test_excess_stretch_counts_only_what_the_clone_adds_to_the_source():
+    vertices, triangles, landmarks, prop = flat_face()
+    solved = np.setdiff1d(np.arange(len(vertices)), prop)
+    stretched = np.zeros_like(vertices)
+    stretched[:, 0] = 2 * vertices[:, 0]                   # x three times as long
+    shrunk = -0.5 * vertices * [1, 0, 0]                    # x half as long
+    deltas = np.stack([stretched, stretched, shrunk])
+    # the source at each vertex's corresponding point: the same face, stretched by 3x in the
+    # first expression (as the target), not at all in the second, shrunk in the third
+    images = (vertices, np.stack([stretched, np.zeros_like(vertices), shrunk]))
+    found = em.measure_expressions(vertices, triangles, deltas, ["same", "added", "shrunk"],
+                                   list(landmarks), list(landmarks.values()), solved, images)
+    assert found["same"]["edge_stretch"] == pytest.approx(3.0)
+    assert found["same"]["excess_stretch"] == pytest.approx(1.0)
+    assert found["added"]["excess_stretch"] == pytest.approx(3.0)
+    assert found["shrunk"]["excess_stretch"] == pytest.approx(1.0)
+    without = measure_flat(deltas[:1], ["same"])["same"]
+    assert without["excess_stretch"] is None and without["excess_stretch_reason"]
+    assert em.summary(found)["worst_excess_stretch"] == pytest.approx(3.0)
+    assert em.summary(found)["worst_excess_stretch_expression"] == "added"
+
+
 def test_lip_gap_and_the_combined_jaw_open_and_mouth_close():
     vertices, _, landmarks, _ = flat_face()
     diagonal = mesh.diagonal(vertices[:-3])
@@ -170,7 +192,7 @@ def test_demo_head_lids_are_its_visible_lid_edges():
     # upper lid's front edge is vertex 2178 (y 7.332), the lower lid's 2221 (y 7.240); the
     # vertices behind 2178 (4216, 3105: the lid's thickness) are not its edge
     vertices, triangles, names, ids = demo_head_fit_inputs()
-    openings = em._Openings(vertices, triangles, dict(zip(names, ids)))
+    openings = em.Openings(vertices, triangles, dict(zip(names, ids)))
     lids = openings.lids["eye_left"]
     assert lids.how == "lid folds"
     assert 2178 in lids.upper and 2221 in lids.lower
@@ -181,7 +203,7 @@ def test_demo_head_lids_are_its_visible_lid_edges():
 @pytest.mark.parametrize("fraction", [1.0, 0.5])
 def test_demo_head_upper_lid_moved_down_by_its_middle_open_height(fraction):
     vertices, triangles, names, ids = demo_head_fit_inputs()
-    lids = em._Openings(vertices, triangles, dict(zip(names, ids))).lids["eye_left"]
+    lids = em.Openings(vertices, triangles, dict(zip(names, ids))).lids["eye_left"]
     opening = lids.opening
     s, h = opening.station(vertices), opening.height(vertices)
     upper_lid = (s > -0.2) & (s < 1.2) & (h > 0) & (h < opening.width)
@@ -200,7 +222,7 @@ def test_a_target_split_at_every_polygon_measures_as_the_welded_one():
     # welds the copies as the fit does, so the lids are still found and read the same
     vertices, triangles, names, ids = demo_head_fit_inputs()
     head = data.demo_head()
-    lids = em._Openings(vertices, triangles, dict(zip(names, ids))).lids["eye_left"]
+    lids = em.Openings(vertices, triangles, dict(zip(names, ids))).lids["eye_left"]
     delta = np.zeros_like(vertices)
     delta[lids.upper] = -0.5 * lids.rest.mean() * lids.opening.up
     welded = CloneResult(["lid"], delta[None], ids, ids, names, vertices)
@@ -265,7 +287,10 @@ def test_a_real_clone_onto_the_demo_head_is_measured():
     head = data.demo_head()
     result = clone_expressions(lib.mesh, lib.deltas, lib.names, head,
                                source_landmarks=lib.automatic_landmarks)
-    found = em.measure_clone(head, result)
+    found = em.measure_clone(head, result, source=lib.mesh, source_deltas=lib.deltas)
+    print("\nlibrary onto the demo head:", {name: {key: row[key] for key in (
+        "eyelid_gap_left", "eyelid_gap_right", "lip_gap", "edge_stretch", "excess_stretch",
+        "flipped_triangles")} for name, row in found.items()})
     assert set(found) == set(lib.names) | {em.MEASURED_TOGETHER}
     for row in found.values():
         for key in ("eyelid_gap_left", "eyelid_gap_right", "lip_gap", "edge_stretch",
@@ -274,8 +299,17 @@ def test_a_real_clone_onto_the_demo_head_is_measured():
     # what the current engine demonstrably does: the blink stays on its own side
     assert found["eyeBlink_L"]["eyelid_gap_right"] == pytest.approx(1.0, abs=0.1)
     assert found["eyeBlink_R"]["eyelid_gap_left"] == pytest.approx(1.0, abs=0.1)
-    assert found["eyeBlink_L"]["eyelid_gap_left"] < 0.9       # and it does close somewhat
+    # the rims' positional goals (core.rims) close the lids to the source's share of the open
+    # height at the lids' images: measured 10.3% (left) and 12.0% (right) left open, the
+    # inner end the most open (16.2% and 16.7% without the goals); the bar of 10% is not reached
+    assert found["eyeBlink_L"]["eyelid_gap_left"] < 0.115
+    assert found["eyeBlink_R"]["eyelid_gap_right"] < 0.13
     assert found["jawOpen"]["lip_gap"] > 0.01
+    # what the clone adds to the source's own stretch: 3.65x on jawOpen (tiny edges at the
+    # mouth's corner), 1.8x at most on the blinks; the bar of 2.5x is reached on the blinks only
+    assert found["jawOpen"]["excess_stretch"] < 4.0
+    for name in ("eyeBlink_L", "eyeBlink_R"):
+        assert found[name]["excess_stretch"] < 2.5
     summary = em.summary(found)
     assert summary["eyeBlink_L_gap"] == found["eyeBlink_L"]["eyelid_gap_left"]
     assert summary["worst_edge_stretch"] == max(row["edge_stretch"] for row in found.values())

@@ -22,6 +22,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
 from . import mesh
+from .proximity import interpolate
 from .surface import Surface
 
 # Stations along the eye opening from the inner to the outer corner, as fractions of the
@@ -41,6 +42,10 @@ EDGE_WINDOW = 0.05
 EYE_REACH = 0.35
 # A margin border loop must reach this close to the corners' middle, x the corners' distance.
 LOOP_REACH = 0.5
+
+# An edge's image on the source shorter than this share of the edge has collapsed (both ends on
+# one point of the source): its stretch ratio means nothing.
+COLLAPSED = 1e-3
 
 EYES = ("left", "right")
 COMBINED = ("jawOpen", "mouthClose")      # measured together: the lips should meet again
@@ -201,7 +206,7 @@ class _Lids:
                 - _row_heights(self.opening, positions[self.lower], EYE_STATIONS))
 
 
-class _Openings:
+class Openings:
     """The lids of both eyes on the rest target (or why each is missing) and the face's up."""
 
     EYE_NAMES = ("eye_inner_{}", "eye_outer_{}")
@@ -244,7 +249,7 @@ class _Openings:
 # ------------------------------------------------------------------------------ measures
 
 def measure_expressions(vertices, triangles, deltas, names, landmark_names, landmark_ids,
-                        solved_vertices):
+                        solved_vertices, images=None):
     """Measures of every expression on the target: {name: measures}, plus one entry
     "jawOpen+mouthClose" (the two deltas summed) where both are given.
 
@@ -257,20 +262,32 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     length over the solved triangles' edges),
     flipped_triangles (normals turned by more than 90 degrees), motion_outside (max displacement
     outside the solved region / the diagonal), and "<measure>_reason" wherever one is None.
+    images: optional (rest (n, 3), deltas (E, n, 3)): the source at each target vertex's
+    corresponding point, at rest and moved by each expression (source_images); with them
+    excess_stretch is measured too (max over edges of the target's stretch / the source's stretch
+    of the same edge's image, counted from 1: what the clone adds to the source's own stretch),
+    else None.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
     deltas = np.asarray(deltas, dtype=np.float64).reshape(-1, len(vertices), 3)
     names = [str(name) for name in names]
+    image_rest, image_deltas = (None, None) if images is None else images
     if all(name in names for name in COMBINED):
-        deltas = np.concatenate([deltas, sum(deltas[names.index(n)] for n in COMBINED)[None]])
+        together = [names.index(n) for n in COMBINED]
+        deltas = np.concatenate([deltas, sum(deltas[k] for k in together)[None]])
+        if image_deltas is not None:
+            image_deltas = np.concatenate([image_deltas,
+                                           sum(image_deltas[k] for k in together)[None]])
         names = names + [MEASURED_TOGETHER]
-    openings = _Openings(vertices, triangles, {str(name): int(i) for name, i
+    if image_deltas is None:
+        image_deltas = [None] * len(deltas)
+    openings = Openings(vertices, triangles, {str(name): int(i) for name, i
                                                in zip(landmark_names, landmark_ids)})
     shape = _Shape(vertices, triangles, solved_vertices)
     return {name: {**_opening_measures(openings, vertices + delta, shape.diagonal),
-                   **shape.measures(delta)}
-            for name, delta in zip(names, deltas)}
+                   **shape.measures(delta), **shape.excess(delta, image_rest, image_delta)}
+            for name, delta, image_delta in zip(names, deltas, image_deltas)}
 
 
 def _opening_measures(openings, positions, diagonal):
@@ -318,13 +335,34 @@ class _Shape:
                 "flipped_triangles": int(flipped.sum()),
                 "motion_outside": float(outside / self.diagonal)}
 
+    def excess(self, delta, image_rest, image_delta):
+        """{"excess_stretch": max over edges of the target's stretch / the source's stretch of
+        the edge's image (counted from 1: no less than 1)}, None (with the reason) without
+        images. Raw stretch is no fair bar:
+        real expressions stretch the short edges across a lid's or lip's thickness many times
+        (MakeHuman's own mouth-open 15x, the library's own jawOpen 37x); what the clone must not
+        do is stretch more than its source does at the same place. Edges whose image on the
+        source has collapsed to a point (no stretch to compare with) are left out."""
+        if image_rest is None:
+            return {"excess_stretch": None,
+                    "excess_stretch_reason": "measured only beside the source's expressions"}
+        image_lengths = self._lengths(image_rest)
+        usable = (self.rest_lengths > 0) & (image_lengths > COLLAPSED * self.rest_lengths)
+        target = self._lengths(self.vertices + delta)[usable] / self.rest_lengths[usable]
+        source = self._lengths(image_rest + image_delta)[usable] / image_lengths[usable]
+        # an edge the source shortens and the clone keeps is not stretched: the source's
+        # stretch counts from 1
+        excess = target / np.maximum(source, 1.0)
+        return {"excess_stretch": float(excess.max(initial=1.0))}
 
-def measure_clone(target, result, names=None, deltas=None):
+
+def measure_clone(target, result, names=None, deltas=None, source=None, source_deltas=None):
     """measure_expressions of a CloneResult on its target PolyMesh: the solved region is the
     target's parts that hold its landmarks (all of it without landmarks), as in the fit.
     names, deltas: the expressions as written, if not the result's (a subset, or with parts
-    kept still). Measured on the welded target (mesh.welded, as the fit): a lid or lip split at a
-    UV seam is one surface, not a border."""
+    kept still). source (PolyMesh) and source_deltas (E, n_source, 3, in the order of `names`):
+    the clone's source, for excess_stretch (source_images). Measured on the welded target
+    (mesh.welded, as the fit): a lid or lip split at a UV seam is one surface, not a border."""
     names, deltas = (result.names, result.deltas) if names is None else (names, deltas)
     welded, index = mesh.welded(target)
     first = np.unique(index, return_index=True)[1]     # one original of each welded vertex
@@ -332,8 +370,27 @@ def measure_clone(target, result, names=None, deltas=None):
     vertices, triangles = mesh.checked_triangles(welded, "target mesh")
     surface = Surface(vertices, triangles)
     region = surface.parts_holding(landmarks) if len(landmarks) else surface
+    images = None if source is None else source_images(vertices, source, source_deltas, result)
     return measure_expressions(vertices, region.triangles, np.asarray(deltas)[:, first], names,
-                               result.landmark_names, landmarks, region.used)
+                               result.landmark_names, landmarks, region.used, images)
+
+
+def source_images(vertices, source, source_deltas, result):
+    """(rest (n, 3), deltas (E, n, 3)): the source (PolyMesh, its expressions' deltas) at the
+    point of its registered surface (result.registered_source, the source's region: the parts
+    holding its landmarks) closest to each target vertex (vertices (n, 3), target coordinates),
+    in the source's own coordinates."""
+    welded, index = mesh.welded(source)
+    first = np.unique(index, return_index=True)[1]
+    own, triangles = mesh.checked_triangles(welded, "source mesh")
+    landmarks = index[np.asarray(result.source_landmarks, dtype=np.int64)]
+    registered = Surface(np.asarray(result.registered_source, dtype=np.float64)[first], triangles)
+    if len(landmarks):
+        registered = registered.parts_holding(landmarks)
+    _, triangle, _, bary = registered.closest(np.asarray(vertices, dtype=np.float64))
+    moves = np.moveaxis(np.asarray(source_deltas, dtype=np.float64)[:, first], 0, 1)
+    return (interpolate(own, registered.triangles, triangle, bary),
+            np.moveaxis(interpolate(moves, registered.triangles, triangle, bary), 1, 0))
 
 
 BLINKS = {"eyeBlink_L": ("left", "right"), "eyeBlink_R": ("right", "left")}   # closes, stays open
@@ -353,9 +410,10 @@ def summary(measures):
     for name in ("jawOpen", MEASURED_TOGETHER):
         found[f"{name}_lip_gap"] = measures.get(name, {}).get("lip_gap")
     # the worst figure's expression is named only where something changed at all
-    for key, unchanged in (("edge_stretch", 1.0), ("flipped_triangles", 0),
-                           ("motion_outside", 0.0)):
-        worst = max(measures, key=lambda name: measures[name][key], default=None)
+    for key, unchanged in (("edge_stretch", 1.0), ("excess_stretch", 1.0),
+                           ("flipped_triangles", 0), ("motion_outside", 0.0)):
+        known = [name for name in measures if measures[name].get(key) is not None]
+        worst = max(known, key=lambda name: measures[name][key], default=None)
         figure = None if worst is None else measures[worst][key]
         found[f"worst_{key}"] = figure
         found[f"worst_{key}_expression"] = worst if figure is not None and figure > unchanged \
