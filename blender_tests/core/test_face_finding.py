@@ -59,13 +59,15 @@ def test_surface_points_lie_on_the_triangle_seen():
 
 def _nose_tip(vertices, ids, found, forward):
     """The most forward vertex (along the true forward) of `ids` near the middle of the face
-    the found points span: within 0.3 eye distances of their centre sideways, 0.6 up or down."""
+    the found points span: within 0.3 eye distances of their centre sideways, 0.35 up or down
+    (the nose, not the lips, which stick out further on some faces)."""
     centre = np.nanmean(found.points, axis=0)
     up = found.up - forward * np.dot(found.up, forward)
+    up /= np.linalg.norm(up)
     right = np.cross(up, forward)
     offset = vertices[ids] - centre
     near = ids[(np.abs(offset @ right) < 0.3 * found.eye_distance)
-               & (np.abs(offset @ up) < 0.6 * found.eye_distance / np.linalg.norm(up))]
+               & (np.abs(offset @ up) < 0.35 * found.eye_distance)]
     return vertices[near[np.argmax(vertices[near] @ forward)]]
 
 
