@@ -115,17 +115,19 @@ def test_eye_turns_in_towards_the_nose_by_the_stated_angle(male):
 
 
 def test_lashes_close_with_the_lid(male):
+    """The lashes above the left eye come down with the lid margin their bases sit on."""
     face, names, deltas = male["face"], male["names"], male["deltas"]
     lashes = male["rest"]["Eyelashes"]
     eye_centre = followers._fitted_sphere(male["rest"]["Eye_L"])[0]
-    above_left = (face.local(lashes)[:, 0] > face.local(eye_centre[None])[0, 0] - 0.2 * face.span) \
-        & ((lashes - eye_centre) @ face.up > 0) & ((lashes - face.mouth) @ face.left > 0)
+    above_left = ((lashes - eye_centre) @ face.up > 0) & ((lashes - face.mouth) @ face.left > 0)
     lash_motion = male["keys"]["Eyelashes"]["eyeBlink_L"][above_left].mean(axis=0)
-    _, triangle, _, bary = face.skin.closest(lashes[above_left])
-    corners = face.skin.triangles[triangle]
-    lid = np.einsum("mc,mcx->mx", bary, deltas[names.index("eyeBlink_L")][corners]).mean(axis=0)
-    print(f"eyeBlink_L: lashes above the left eye move {lash_motion.round(5)}, the lid under "
-          f"them {lid.round(5)}")
+    _, triangle, distance, bary = face.skin.closest(lashes[above_left])
+    base = distance <= distance.min() + followers.ROOT_GAP * face.span
+    corners = face.skin.triangles[triangle[base]]
+    lid = np.einsum("mc,mcx->mx", bary[base],
+                    deltas[names.index("eyeBlink_L")][corners]).mean(axis=0)
+    print(f"eyeBlink_L: lashes above the left eye move {1000 * lash_motion.round(5)} mm, the lid "
+          f"at their bases {1000 * lid.round(5)} mm")
     assert lid @ face.up < -0.02 * face.span                       # the lid comes down
     assert np.linalg.norm(lash_motion - lid) <= 0.2 * np.linalg.norm(lid)
 
