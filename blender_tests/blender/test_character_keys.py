@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from exclone_addon.blender import character, character_keys, mesh_io
 from exclone_addon.core import followers
-from exclone_addon.core.cloning import clone_expressions
+from exclone_addon.core.cloning import clone_expressions, found_landmarks
 from exclone_addon.core.library import arkit_blendshapes, load_library
 from exclone_addon.core.mesh import PolyMesh
 
@@ -179,3 +179,34 @@ def test_follower_keys_are_driven_and_removed_with_the_face_keys(shared_data, cl
     assert bpy.data.objects["Eye_L"].data.shape_keys is None
     animation = teeth.data.shape_keys.animation_data
     assert animation is None or not animation.drivers
+
+
+def test_brows_and_lashes_follow_as_makehuman_refits_them(shared_data):
+    """mh_child_body_expr carries MakeHuman's own expression units on the body and its refit of
+    the eyebrows and eyelashes: driven by the body's keys, the followers move them alike."""
+    bpy.ops.wm.open_mainfile(filepath=str(shared_data / "characters" / "mh_child_body_expr.blend"))
+    body = bpy.data.objects["Body"]
+    world = character.world_mesh(body)
+    head, ids = head_cut(world.vertices, world.triangles, 0.90)
+    names, found = found_landmarks(head)
+    points = character_keys.skin_points(world.vertices, world.triangles, names, ids[found])
+    face = followers.face_from_points(world.vertices, world.triangles, points)
+    body_keys = keys(body)
+    expressions = list(body_keys)
+    objects = [bpy.data.objects["Eyebrows"], bpy.data.objects["Eyelashes"]]
+    followings = followers.follow(face, np.stack([body_keys[name] for name in expressions]),
+                                  expressions, [tuple(character.world_mesh(obj)) for obj in objects])
+    for obj, following in zip(objects, followings):
+        for name, reference in keys(obj).items():
+            ours = following.deltas[expressions.index(name)]
+            moving = np.linalg.norm(reference, axis=1) > 1e-4
+            error = np.linalg.norm(ours - reference, axis=1)[moving].mean() \
+                / np.linalg.norm(reference, axis=1)[moving].mean()
+            cosine = (ours[moving] * reference[moving]).sum() \
+                / np.linalg.norm(ours[moving]) / np.linalg.norm(reference[moving])
+            print(f"{obj.name} {name}: mean error {error:.0%} of MakeHuman's motion, "
+                  f"direction cosine {cosine:.3f}")
+            if obj.name == "Eyebrows":
+                assert error < 0.2 and cosine > 0.98, name
+            else:
+                assert error < 0.5 and cosine > 0.9, name
