@@ -42,7 +42,7 @@ REFINEMENTS = 2
 MIN_PRESENCE = 0.9
 MIN_REDETECTION = 0.85
 # The close render is this many face heights (forehead 10 to chin 152) across.
-CLOSE_VIEW_FACES = 1.8
+CLOSE_VIEW_FACES = 1.6
 # FaceMesh points used for the frame and the sizes.
 FOREHEAD, CHIN = 10, 152       # CHIN: the chin's lowest point (the menton)
 EYE_CORNERS_RIGHT, EYE_CORNERS_LEFT = (33, 133), (263, 362)   # the character's right, left

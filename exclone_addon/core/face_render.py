@@ -17,12 +17,14 @@ import numpy as np
 
 from .mesh import vertex_normals
 
-# Skin-like grey (BGR) under a headlight: the face detector scores such renders like photographs
-# of faces (measured in docs/method.md §4); pure white or pure grey score lower.
+# Skin-like grey (BGR) under a headlight. Measured on close views of four shared heads, the
+# detector's score moves by at most 0.02 between this, mid-grey and white, or with the light from
+# above (docs/method.md §4): the shape reads as a face, the colour hardly matters.
 SKIN_BGR = np.array([150.0, 170.0, 205.0])
 AMBIENT = 0.25
-# Candidate (triangle, pixel) pairs per batch: bounds the rasteriser's memory (~100 MB).
-PAIRS_PER_BATCH = 2_000_000
+# Candidate (triangle, pixel) pairs per batch: bounds the rasteriser's working memory (~150 bytes
+# a pair: ~75 MB).
+PAIRS_PER_BATCH = 500_000
 
 
 @dataclass(frozen=True)
