@@ -12,6 +12,7 @@ import numpy as np
 
 from ..core import followers
 from ..core.cloning import found_landmarks
+from ..core.errors import ExCloneError
 from ..core.mesh import PolyMesh, diagonal
 from ..core.reports import listed
 from . import character, mesh_io
@@ -78,6 +79,26 @@ def follow_face(face_obj, names, skin, skin_deltas, points, objects, *, replace_
         done.append((obj.name, following.kinds(), len(moving)))
     mark(face_obj, names)
     return done
+
+
+def follow_character(target, names, head_deltas, result, *, replace_existing=False):
+    """Clone's and Generate ARKit's step for the character's other objects: follow_face with the
+    solved head as the skin. target: the operators' target (its face_object, others() and
+    face.head.mesh, the head in world space); head_deltas (E, m, 3) the head's world-space
+    displacements of the keys `names`; result: the engine's CloneResult (its landmarks in the
+    head's numbering). Returns the report's clause: what each object got, or why none did."""
+    objects = target.others()
+    if not objects:
+        return ""
+    head = target.face.head.mesh
+    skin = (head.vertices, head.triangles())
+    try:
+        points = skin_points(*skin, result.landmark_names, result.target_landmarks)
+        done = follow_face(target.face_object, names, skin, head_deltas, points, objects,
+                           replace_existing=replace_existing)
+    except ExCloneError as exc:
+        return f"other objects kept still ({exc})"
+    return summary(done) if done else "other objects kept still (none at the face)"
 
 
 def mark(obj, names):
