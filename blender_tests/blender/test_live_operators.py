@@ -9,6 +9,7 @@ modal/timer path itself and the gpu viewport overlay (both need a window).
 """
 import math
 import re
+import time
 
 import bpy
 import cv2
@@ -150,6 +151,38 @@ def test_video_take_keys_every_shape_key_at_the_videos_time(ict, video, capfd):
     assert obj.animation_data is None          # no head target: the object is not animated
     assert obj.rotation_mode == 'XYZ'
     assert bpy.data.images[camera_preview.PREVIEW_IMAGE].size[:] == (camera_preview.PREVIEW_WIDTH, 240)
+
+
+def test_a_take_on_the_worker_thread_keys_what_step_keys_and_its_ticks_stay_short(ict, video):
+    """What the modal operator does: the worker thread reads and tracks, tick() on the main
+    thread only applies; a file's every frame is applied in order, as step() applies them.
+    The first second's calibration runs in the worker: no tick waits for it."""
+    runs = {}
+    for threaded in (False, True):
+        obj = add_avatar(ict, f"avatar {threaded}")
+        take = webcam_take.start_take(bpy.context, source_type='VIDEO', filepath=str(video),
+                                      record=True)
+        if threaded:
+            take.start_worker()
+            while take.tick():
+                time.sleep(0.001)
+        else:
+            while take.step():
+                pass
+        take.close()
+        runs[threaded] = (take, keyframes(obj.data.shape_keys))
+    (plain, plain_keys), (threaded, threaded_keys) = runs[False], runs[True]
+    assert threaded.end_reason == "the source ended" and not threaded.interrupted
+    assert threaded.frames_read == plain.frames_read == 44
+    assert threaded.worker.wait(5.0) and threaded.source._capture is None    # closed by the worker
+    assert threaded_keys.keys() == plain_keys.keys()
+    for path, points in plain_keys.items():
+        np.testing.assert_allclose(threaded_keys[path], points, atol=1e-9)
+    # a tick applies in about a millisecond; one may wait a few for the GIL while the worker
+    # runs Python, none for the calibration (0.75-9 s when step() does it)
+    assert np.median(threaded.apply_ms) <= 2.0, np.median(threaded.apply_ms)
+    assert max(threaded.apply_ms) < 50.0, list(np.round(threaded.apply_ms, 1))
+    assert len(threaded.latency_ms) == 44 - VIDEO_FPS + 1
 
 
 def test_head_rotation_follows_the_turned_image(ict, turning_folder):

@@ -10,9 +10,10 @@ PREVIEW_WIDTH = 320
 LANDMARK_COLOUR = (0, 255, 0)          # RGB: pure green is rare in camera images
 
 
-def update_preview(image_bgr, landmarks=None):
-    """The frame at PREVIEW_WIDTH pixels wide with the landmarks as 2x2 dots, into the
-    PREVIEW_IMAGE datablock (made or resized as needed)."""
+def preview_pixels(image_bgr, landmarks=None):
+    """The frame at PREVIEW_WIDTH pixels wide with the landmarks as 2x2 dots, as Blender's image
+    pixels (float RGBA, bottom row first). No bpy: a take's worker thread prepares them, so the
+    main thread only copies them in (show_preview)."""
     height, width = image_bgr.shape[:2]
     scale = PREVIEW_WIDTH / width
     size = (PREVIEW_WIDTH, max(1, round(height * scale)))
@@ -25,6 +26,12 @@ def update_preview(image_bgr, landmarks=None):
             rgb[y, x] = LANDMARK_COLOUR
     rgba = np.ones((size[1], size[0], 4), dtype=np.float32)
     rgba[..., :3] = rgb[::-1] / 255.0          # Blender's images start at the bottom row
+    return rgba
+
+
+def show_preview(rgba):
+    """preview_pixels' result into the PREVIEW_IMAGE datablock (made or resized as needed)."""
+    size = (rgba.shape[1], rgba.shape[0])
     image = bpy.data.images.get(PREVIEW_IMAGE)
     if image is None:
         image = bpy.data.images.new(PREVIEW_IMAGE, size[0], size[1])

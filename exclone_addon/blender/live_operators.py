@@ -93,6 +93,7 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
         if take is None:
             return {'CANCELLED'}
         webcam_take.running = self._take = take
+        take.start_worker()         # reading and tracking leave the main thread from here
         window_manager = context.window_manager
         self._timer = window_manager.event_timer_add(1 / 120, window=context.window)
         self._overlay = camera_preview.show_overlay(take) if self.show_overlay else None
@@ -106,13 +107,15 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
             take.stop_requested = True
         elif event.type != 'TIMER':     # the view stays usable while the take runs
             return {'PASS_THROUGH'}
-        if take.step():
+        applied = take.frames_read
+        if not take.tick():
+            return self._end_modal(context)
+        if take.frames_read != applied:     # a new frame was applied: show it
             context.workspace.status_text_set(f"ExClone: {take.status} (Esc stops the take)")
             for area in context.screen.areas:
                 if area.type == 'VIEW_3D':
                     area.tag_redraw()
-            return {'RUNNING_MODAL'}
-        return self._end_modal(context)
+        return {'RUNNING_MODAL'}
 
     def _end_modal(self, context):
         context.window_manager.event_timer_remove(self._timer)
@@ -163,8 +166,7 @@ class EXCLONE_OT_calibrate_neutral(_RunningTake, bpy.types.Operator):
 
     def execute(self, context):
         take = webcam_take.running
-        take.session.calibrate()
-        take.status = "calibrating: hold a neutral face"
+        take.request_calibration()
         self.report({'INFO'}, f"Calibrating over the next {take.session.calibration_frames} "
                               "frames with a face: hold a neutral face")
         return {'FINISHED'}

@@ -1,12 +1,20 @@
 """Drive from Webcam's take: the tracked face drives the avatar's shape keys (and a head rotation).
 
-One frame's work is Take.step(): read a frame, track it (core.session), write the shape-key
-values and the head rotation, key them when recording, update the camera preview. The modal
-operator calls step() on a window-manager timer; execute() (scripts, background Blender) and the
-tests call it in a loop. step() never raises: an error (a bad frame, a lost camera) ends the take
+One frame's work is Take.step(): read a frame and track it (track_next: core.session, no bpy),
+then apply the result (write the shape-key values and the head rotation, key them when
+recording, show the camera preview). execute() (scripts, background Blender, where timers never
+fire) and the tests call step() in a loop. In a window the modal operator runs track_next on a
+worker thread (start_worker, core.tracking_worker) and its timer calls tick(), which only applies
+the newest result: Blender's main thread spends about a millisecond a tick, calibration
+included. step() and tick() never raise: an error (a bad frame, a lost camera) ends the take
 with a one-line reason, and what it wrote so far stays.
 """
+import collections
+import time
+from dataclasses import dataclass
 from pathlib import Path
+
+import numpy as np
 
 import bpy
 from bpy_extras import anim_utils
@@ -15,13 +23,25 @@ from ..core import capture
 from ..core.errors import ExCloneError, user_message
 from ..core.session import FaceTrackingSession
 from ..core.tracking import Camera
+from ..core.tracking_worker import TrackingWorker, WorkerError
 from . import preferences
 from .avatar_rig import avatar_rig, checked_avatar
-from .camera_preview import update_preview
+from .camera_preview import preview_pixels, show_preview
 from .head_motion import HeadTarget, head_holder
 
 running = None        # the Take in progress in the UI (the Stop and Calibrate operators act on it)
 last_take = None      # the last take that recorded keyframes (Refine Take rewrites them)
+# How many of the latest frames' timings a take keeps (main-thread ms per applied frame, ms from
+# a frame's capture to its shape keys written).
+TIMINGS_KEPT = 10000
+
+
+@dataclass
+class TrackedFrame:
+    """One frame's tracking, ready to apply on the main thread."""
+    frame: capture.Frame
+    result: object           # session.FrameResult
+    preview: np.ndarray      # camera_preview.preview_pixels of the frame
 
 
 def calibrated_camera(webcam, frame_size):
@@ -72,6 +92,10 @@ class Take:
         self.end_reason = None
         self.interrupted = False
         self.stop_requested = False
+        self.calibration_requested = False
+        self.worker = None
+        self.apply_ms = collections.deque(maxlen=TIMINGS_KEPT)
+        self.latency_ms = collections.deque(maxlen=TIMINGS_KEPT)
 
     @property
     def fps(self):
@@ -87,10 +111,19 @@ class Take:
         return self.start_frame + round(timestamp * self.fps)
 
     def step(self):
-        """One frame; False once the take is over. Never raises: an error ends the take with
-        its one line in end_reason, and everything written before it stays."""
+        """One frame read, tracked and applied on this thread; False once the take is over.
+        Never raises: an error ends the take with its one line in end_reason, and everything
+        written before it stays."""
+        return self._guarded(self._advance)
+
+    def tick(self):
+        """A timer tick while the worker runs: applies the newest tracked frame, if any; False
+        once the take is over. Never raises, as step()."""
+        return self._guarded(self._apply_newest)
+
+    def _guarded(self, advance):
         try:
-            return self._advance()
+            return advance()
         except ReferenceError:      # the avatar was deleted or an undo replaced it
             return self._interrupt("the avatar was removed during the take")
         except Exception as exc:    # any other error (a bad frame, a lost camera) ends it too
@@ -100,25 +133,78 @@ class Take:
         self.end_reason, self.interrupted = reason, True
         return False
 
-    def _advance(self):
+    def _over(self):
+        """Why the take is over before the next frame, or None."""
         if self.stop_requested:
-            self.end_reason = "stopped"
-            return False
+            return "stopped"
         if self.max_frames and self.frames_read >= self.max_frames:
-            self.end_reason = f"{self.max_frames} frames read"
+            return f"{self.max_frames} frames read"
+        return None
+
+    def _advance(self):
+        self.end_reason = self._over()
+        if self.end_reason:
             return False
-        frame = self.source.read()
-        if frame is None:
+        tracked = self.track_next()
+        if tracked is None:
             self.end_reason = "the source ended"
             return False
+        self.apply(tracked)
+        return True
+
+    def request_calibration(self):
+        """Recalibrate the neutral from the next frame on (the tracking side starts it, so a
+        running worker is never raced)."""
+        self.calibration_requested = True
+        self.status = "calibrating: hold a neutral face"
+
+    def track_next(self):
+        """Reads and tracks one frame: a TrackedFrame, or None when the source ended. Touches no
+        Blender data (the worker thread runs it)."""
+        frame = self.source.read()
+        if frame is None:
+            return None
+        if self.calibration_requested:
+            self.calibration_requested = False
+            self.session.calibrate()
         result = self.session.step(frame.image, frame.timestamp, frame.name)
+        return TrackedFrame(frame, result,
+                            preview_pixels(frame.image, result.landmarks if result.found else None))
+
+    def apply(self, tracked):
+        """Main thread: the tracked frame's weights and head rotation written (and keyed when
+        recording), the preview shown; its timings recorded."""
+        start = time.perf_counter()
+        result = tracked.result
         self.frames_read += 1
         self.frames_with_face += bool(result.found)
-        self.status = result.status
+        if not self.calibration_requested:
+            self.status = result.status
         # Without a face the session repeats the last pose: it is held (and keyed) as it was.
         if result.weights is not None:
-            self._write(result, frame.timestamp)
-        update_preview(frame.image, result.landmarks if result.found else None)
+            self._write(result, tracked.frame.timestamp)
+            self.latency_ms.append(1000 * (time.monotonic() - tracked.frame.captured))
+        show_preview(tracked.preview)
+        self.apply_ms.append(1000 * (time.perf_counter() - start))
+
+    def start_worker(self):
+        """From now on frames are read and tracked on a worker thread; tick() applies them."""
+        self.worker = TrackingWorker(self.track_next, live=self.source.is_live,
+                                     on_exit=self.source.close)
+
+    def _apply_newest(self):
+        self.end_reason = self._over()
+        if self.end_reason:
+            return False
+        item = self.worker.next_item()
+        if item is None:
+            if self.worker.finished:
+                self.end_reason = "the source ended"
+                return False
+            return True
+        if isinstance(item, WorkerError):
+            raise item.error
+        self.apply(item)
         return True
 
     def _write(self, result, timestamp):
@@ -159,7 +245,12 @@ class Take:
         return len(rows), changes
 
     def close(self):
-        self.source.close()
+        """Ends the take's reading: a running worker is stopped and closes the source itself
+        once its current frame is done (the main thread never waits for a calibration)."""
+        if self.worker is not None:
+            self.worker.stop()
+        else:
+            self.source.close()
 
     def summary(self):
         text = f"{self.frames_read} frames from {self.source.description}, " \

@@ -4,7 +4,13 @@ tracker reads (docs/method.md §10).
 Every source gives 8-bit BGR frames with a timestamp in seconds from the source's start: the wall
 clock for a camera, the frame's place in the file for a video or a folder (so a file is tracked
 the same however fast the machine is), and a name for messages about the frame.
+
+A camera is read for its newest frame: its driver keeps a queue of frames (OpenCV's default is
+four; a 1080p MJPEG camera read once per tracked frame then delivers frames about 200 ms old),
+so the queue is shortened to one where the backend allows and a reader thread grabs every frame
+as it arrives, decoding only the one asked for.
 """
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,6 +22,8 @@ from .errors import ExCloneError
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
 FOLDER_FRAME_RATE = 30.0
+# A camera that delivers no frame for this long is lost.
+CAMERA_TIMEOUT_S = 2.0
 
 
 class CameraLost(ExCloneError):
@@ -28,6 +36,7 @@ class Frame:
     timestamp: float     # seconds from the source's start
     index: int
     name: str            # what a message calls it: "image a.png", "frame 12 of clip.mp4"
+    captured: float = 0.0    # time.monotonic() when it was grabbed (camera) or read (file)
 
 
 class FrameSource:
@@ -82,7 +91,7 @@ class _CaptureSource(FrameSource):
             ok, image = self._capture.read()
             if not ok or image is None:
                 return self._ended()
-        frame = Frame(_as_bgr(image), self._timestamp(), self._count, self._name())
+        frame = Frame(_as_bgr(image), self._timestamp(), self._count, self._name(), time.monotonic())
         self._count += 1
         return frame
 
@@ -92,12 +101,64 @@ class _CaptureSource(FrameSource):
             self._capture = None
 
 
+class NewestFrameReader:
+    """Grabs a capture's frames on its own thread as they arrive (so the driver's queue never
+    fills with old ones) and decodes only the one asked for: read() gives the first frame
+    grabbed after the call, with its grab time. The capture is used by this thread alone."""
+
+    def __init__(self, capture, timeout=CAMERA_TIMEOUT_S):
+        self._capture = capture
+        self._timeout = timeout
+        self._wanted = threading.Event()
+        self._delivered = threading.Event()
+        self._frame = None          # (image, grab time) or None (the capture failed)
+        self._stopping = False
+        self._thread = threading.Thread(target=self._run, name="ExClone camera", daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        last_frame = time.monotonic()
+        while not self._stopping:
+            if not self._capture.grab():
+                if time.monotonic() - last_frame > self._timeout:
+                    break
+                time.sleep(0.005)
+                continue
+            last_frame = time.monotonic()
+            if self._wanted.is_set():
+                ok, image = self._capture.retrieve()
+                self._frame = (image, last_frame) if ok and image is not None else None
+                self._wanted.clear()
+                self._delivered.set()
+        self._frame = None
+        self._delivered.set()       # a waiting read() learns that no frame will come
+
+    def read(self):
+        """(BGR image, time.monotonic() of its grab), or None when the capture delivers nothing
+        within the timeout."""
+        if not self._thread.is_alive():
+            return None
+        self._delivered.clear()
+        self._wanted.set()
+        if not self._delivered.wait(self._timeout):
+            return None
+        return self._frame
+
+    def close(self):
+        """Stops grabbing; True when the thread ended (the capture may then be released)."""
+        self._stopping = True
+        self._thread.join(self._timeout + 1.0)
+        return not self._thread.is_alive()
+
+
 class CameraSource(_CaptureSource):
+    """A camera by index, read for its newest frame (NewestFrameReader). capture: an opened
+    VideoCapture-like object to read instead of opening the index (a paced clip in tests)."""
     is_live = True
 
-    def __init__(self, index):
+    def __init__(self, index, capture=None):
         # Opening a missing camera makes OpenCV's backends log to stderr; their verdict is what counts.
-        capture = cv2.VideoCapture(index)
+        capture = cv2.VideoCapture(index) if capture is None else capture
         if not capture.isOpened():
             capture.release()
             raise ExCloneError(f"no camera at index {index}")
@@ -110,16 +171,32 @@ class CameraSource(_CaptureSource):
         self.description = f"camera {index}"
         fps = capture.get(cv2.CAP_PROP_FPS)
         self.frame_rate = float(fps) if fps and fps > 0 else None
+        # one frame in the driver's queue where the backend supports it (not all do)
+        capture.set(cv2.CAP_PROP_BUFFERSIZE, 1)
         self._clock_start = time.monotonic()
+        self._reader = NewestFrameReader(capture)
 
-    def _timestamp(self):
-        return time.monotonic() - self._clock_start
+    def read(self):
+        if self._capture is None:
+            return None
+        if self._pending is not None:
+            image, self._pending = self._pending, None
+            grabbed = time.monotonic()
+        else:
+            newest = self._reader.read()
+            if newest is None:
+                raise CameraLost(f"camera {self.index} stopped delivering frames")
+            image, grabbed = newest
+        frame = Frame(_as_bgr(image), grabbed - self._clock_start, self._count,
+                      f"frame {self._count} of camera {self.index}", grabbed)
+        self._count += 1
+        return frame
 
-    def _name(self):
-        return f"frame {self._count} of camera {self.index}"
-
-    def _ended(self):
-        raise CameraLost(f"camera {self.index} stopped delivering frames")
+    def close(self):
+        if self._capture is not None:
+            if self._reader.close():
+                self._capture.release()
+            self._capture = None
 
 
 class VideoSource(_CaptureSource):
@@ -176,7 +253,7 @@ class ImageSource(FrameSource):
         else:
             image = self._load(self.files[self._count])
         frame = Frame(image, self._count / self.frame_rate, self._count,
-                      f"image {Path(self.files[self._count]).name}")
+                      f"image {Path(self.files[self._count]).name}", time.monotonic())
         self._count += 1
         return frame
 
