@@ -46,7 +46,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from exclone_cli import (Outputs, Parser, check_folder_writable, check_output_writable,  # noqa: E402
                          number, run_main)
-from exclone_addon.blender import files, mesh_io, preview  # noqa: E402
+from exclone_addon.blender import character, files, mesh_io, preview, workflow  # noqa: E402
 from exclone_addon.core import data, reports  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
@@ -314,7 +314,8 @@ def write_outputs(outputs, paths, target, result, timings):
     engine = None
     if paths.preview is not None:
         clock = time.perf_counter()
-        sheet, engine = preview.contact_sheet(target.obj, target.mesh.vertices, added)
+        sheet, engine = preview.contact_sheet(target.obj, target.mesh.vertices[
+            target.face.head.vertex_ids], added)          # framing the head
         outputs.write(paths.preview, lambda path: _write_png(path, sheet))
         timings["preview"] = time.perf_counter() - clock
     return added, replaced, skipped, exported, engine
@@ -325,6 +326,7 @@ def build_report(args, paths, inputs, result, written, timings):
     added, _, skipped, exported, engine = written
     return {
         "inputs": {"source": source.description, "target": target.description,
+                   "face": target.face.description(),
                    "landmarks": args.landmarks, "shapes": args.shapes},
         "counts": {"source_vertices": len(source.mesh.vertices),
                    "source_triangles": len(source.mesh.triangles()),
@@ -357,14 +359,23 @@ def run(args):
     timings = {}
     inputs = read_inputs(args, paths, timings)
     clock = time.perf_counter()
+    # only the head of the face's object is solved, in world space (files.load_target)
+    target = inputs.target
+    face, landmarks = workflow.in_head(target.face, character.parts([target.obj])[0],
+                                       inputs.landmarks)
+    target.face = face
     result = clone_expressions(inputs.source.mesh, inputs.source.deltas, inputs.source.names,
-                               inputs.target.mesh, landmarks=inputs.landmarks,
+                               face.head.mesh, landmarks=landmarks,
                                source_landmarks=inputs.source.automatic_landmarks,
-                               settings=CloneSettings(), progress=_print_progress())
+                               settings=CloneSettings(), progress=_print_progress(),
+                               face_guide=face.guide, fixed_vertices=face.head.fixed)
     timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
     timings["clone_total"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    measures = measure_clone(inputs.target.mesh, result)
+    measures = measure_clone(face.head.mesh, result)
+    # from here on, the face's object's own numbering and coordinates
+    result.deltas = workflow.face_object_deltas(target.obj, face, result.deltas)
+    result.target_landmarks = face.head.own_ids(result.target_landmarks)
     timings["measures"] = time.perf_counter() - clock
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings)
@@ -379,7 +390,7 @@ def run(args):
           + (f"\nexport:  {paths.export_dir} ({len(exported)} OBJs)" if exported else ""))
     print("measures: " + (reports.measures_clause(report["measures"]["summary"]) or "none"))
     rendered = f", preview {timings['preview']:.1f} s" if paths.preview else ""
-    print(f"{inputs.target.obj.name}: "
+    print(f"{target.face.description()}\n{target.obj.name}: "
           + reports.summary(added, replaced, skipped, timings["total"], result.quality)
           + f" (cloning {timings['clone_total']:.1f} s{rendered})")
     return report

@@ -20,6 +20,11 @@ into another. Cases:
   would give 4x the vertices, Catmull-Clark needs Blender's modifier); and the same folder read
   by the line-by-line OBJ reader (mesh._obj_line_by_line, what read_obj was before the bulk
   reader; faces of every file) and by core.library.load_obj_folder, side by side;
+- character_body, character_head_dense: a shared MakeHuman character (../shared/data/characters:
+  the full-body mh_male_body.blend, 7 objects; the 67k-vertex mh_head_dense.blend) from the file
+  to the ARKit keys on all its objects: every object appended into an empty scene, then the Generate
+  ARKit Shapes operator made active on an object that is not the face's (the face found by
+  rendering, the head solved, the other objects' keys written); CPU and wall seconds, peak RSS;
 - compare: with ONE set of automatic landmarks (the engine's own, from a first clone) and the same
   schedule, the reduced vs the augmented formulation, and trimesh.registration.nricp_sumner on
   the same source region, target region and landmarks; all errors by one metric (below).
@@ -316,6 +321,43 @@ def run_cli_case():
             "obj_folder_read": readers}
 
 
+CHARACTER_FILES = {"character_body": "mh_male_body.blend",
+                   "character_head_dense": "mh_head_dense.blend"}
+
+
+def run_character_case(name):
+    """CHARACTER_FILES[name] from the file to keys on all its objects, through the Generate ARKit
+    operator in background Blender (the bpy module)."""
+    import bpy
+    import exclone_addon
+    path = ROOT.parent / "shared" / "data" / "characters" / CHARACTER_FILES[name]
+    if not path.is_file():
+        return {"error": f"{path} not found (the shared data)"}
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    exclone_addon.register()
+    gc.collect()
+    rss_before, peak_was_reset = rss_baseline_mib()
+    wall, cpu = time.perf_counter(), time.process_time()
+    with bpy.data.libraries.load(str(path), link=False) as (source, loaded):
+        loaded.objects = list(source.objects)
+    for obj in loaded.objects:
+        bpy.context.scene.collection.objects.link(obj)
+    bpy.context.view_layer.update()
+    meshes = sorted((o for o in loaded.objects if o.type == 'MESH'), key=lambda o: o.name)
+    bpy.context.view_layer.objects.active = meshes[0]     # any object of the character
+    finished = bpy.ops.exclone.generate_arkit_shapes()
+    seconds = {"wall": round(time.perf_counter() - wall, 2),
+               "cpu": round(time.process_time() - cpu, 2)}
+    keys = {obj.name: len(obj.data.shape_keys.key_blocks) - 1 if obj.data.shape_keys else 0
+            for obj in meshes}
+    return {"file": CHARACTER_FILES[name], "finished": sorted(finished),
+            "vertices": {obj.name: len(obj.data.vertices) for obj in meshes},
+            "shape_keys": keys, "seconds_file_to_all_keys": seconds,
+            "peak_rss_growth_from_file_mib": round(max_rss_mib() - rss_before, 1),
+            "peak_rss_mib": round(max_rss_mib(), 1),
+            "peak_rss_reset_before_load": peak_was_reset}
+
+
 def run_compare(with_trimesh, repeats=2):
     source, deltas, names, target, marks = case_inputs("face")
     # the engine's automatic landmarks
@@ -516,6 +558,8 @@ def main(argv=None):
             result = run_compare(with_trimesh=not args.no_trimesh)
         elif args.case == "cli_obj_folder":
             result = run_cli_case()
+        elif args.case in CHARACTER_FILES:
+            result = run_character_case(args.case)
         else:
             result = run_case(args.case)
         print(json.dumps(result))
@@ -523,7 +567,8 @@ def main(argv=None):
 
     started = time.perf_counter()
     load_before = os.getloadavg()
-    names = ["face"] if args.quick else ["face", "head", "face_dense_target", "cli_obj_folder"]
+    names = ["face"] if args.quick else ["face", "head", "face_dense_target", "cli_obj_folder",
+                                         *CHARACTER_FILES]
     cases = {}
     for name in names:
         print(f"bench_clone: case {name} ...", file=sys.stderr, flush=True)

@@ -10,6 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..core.character import Part
 from ..core.errors import ExCloneError
 from ..core.mesh import PolyMesh
 from . import mesh_io
@@ -67,3 +68,34 @@ def local_deltas(obj, world_deltas):
         raise ExCloneError(f"'{obj.name}' has a zero scale on some axis: apply or fix its "
                            "scale first")
     return np.asarray(world_deltas, dtype=np.float64) @ np.linalg.inv(linear).T
+
+
+def family(obj):
+    """The mesh objects of obj's hierarchy: its top-most parent and everything under it."""
+    root = obj
+    while root.parent is not None:
+        root = root.parent
+    return [one for one in [root, *root.children_recursive] if one.type == 'MESH']
+
+
+def character_objects(target, selected=(), exclude=()):
+    """The character's mesh objects, given the target object (active or chosen; may be the
+    character's empty parent): its hierarchy when it has one, else the selected meshes with it
+    (or it alone). Objects in `exclude` (the source) are never part of it. ExCloneError if
+    there is no mesh."""
+    if target is None:
+        raise ExCloneError("Nothing selected: make the character (or its head) the active "
+                           "object")
+    meshes = [obj for obj in family(target) if obj not in exclude]
+    if len(meshes) <= 1:          # no hierarchy of meshes: the selection makes the character
+        meshes += [obj for obj in selected if obj.type == 'MESH' and obj not in exclude
+                   and obj not in meshes]
+    if not meshes:
+        raise ExCloneError(f"'{target.name}' is not a mesh and has no mesh objects under it: "
+                           "select the character's mesh objects")
+    return sorted(meshes, key=lambda obj: obj != target)       # the target first
+
+
+def parts(objects):
+    """core.character.Part (world space) of each object."""
+    return [Part(obj.name, world_polymesh(obj, what=obj.name)) for obj in objects]

@@ -2,6 +2,9 @@
 .fbx, .glb or .gltf (imported into the current scene), an .obj (read by core.mesh.read_obj: the
 file's coordinates and vertex order are kept) or a folder with neutral.obj + one OBJ per
 expression (core.library.load_obj_folder). Input files are only read.
+
+A target file is a character: without :Object every mesh object of the file is, with :Object
+that object and its hierarchy; the face is found on them (blender/workflow.character_face).
 """
 import math
 from dataclasses import dataclass
@@ -12,7 +15,7 @@ import bpy
 from ..core import data, library
 from ..core.errors import ExCloneError
 from ..core.mesh import MeshError, PolyMesh, check_mesh, read_obj
-from . import mesh_io
+from . import character, mesh_io, workflow
 
 IMPORTERS = {".fbx": "fbx", ".glb": "gltf", ".gltf": "gltf"}
 CONTAINERS = (".blend",) + tuple(IMPORTERS)
@@ -22,8 +25,10 @@ TARGET_SUFFIXES = (".obj",) + CONTAINERS
 @dataclass
 class Target:
     description: str
-    mesh: PolyMesh
-    obj: object                     # the bpy object, in the current scene, that gets the keys
+    mesh: PolyMesh                  # the face's object's mesh, its own coordinates
+    obj: object                     # the face's object, in the current scene: it gets the keys
+    objects: list                   # the character's mesh objects in the scene (obj among them)
+    face: object                    # core.character.CharacterFace: the face's object and head
 
 
 def split_spec(spec):
@@ -138,16 +143,33 @@ def load_source(spec, role="source"):
     return source
 
 
-def _keep_only(obj):
-    """Remove every object but obj and its parents, and link obj to the scene: the file saved
-    afterwards holds the target alone (and what it uses)."""
-    keep, ancestor = {obj}, obj.parent
-    while ancestor is not None:
-        keep.add(ancestor)
-        ancestor = ancestor.parent
+def _keep_only(objects):
+    """Remove every object but `objects` and their parents, and link them to the scene (their
+    transforms evaluated): the file saved afterwards holds the target alone (and what it
+    uses)."""
+    keep = set()
+    for obj in objects:
+        while obj is not None:
+            keep.add(obj)
+            obj = obj.parent
     bpy.data.batch_remove([other for other in bpy.data.objects if other not in keep])
-    if obj.name not in bpy.context.scene.collection.all_objects:
-        bpy.context.scene.collection.objects.link(obj)
+    scene = bpy.context.scene
+    for obj in sorted(keep, key=lambda one: one.name):
+        if obj.name not in scene.collection.all_objects:
+            scene.collection.objects.link(obj)
+    bpy.context.view_layer.update()
+
+
+def _character_in(path, name):
+    """The character's objects of a file: the object `name` and its hierarchy, else every mesh
+    object (a file of several characters is not told apart: give :Object)."""
+    objects = sorted(_objects_from_file(path), key=lambda obj: obj.name)
+    if name is not None:
+        return character.family(_named_object(objects, path, name, "target", False))
+    meshes = [obj for obj in objects if obj.type == 'MESH']
+    if not meshes:
+        raise ExCloneError(f"target {path} contains no mesh object")
+    return meshes
 
 
 def load_target(spec):
@@ -159,18 +181,22 @@ def load_target(spec):
     if path.is_dir():
         raise ExCloneError(f"target {path} is a folder; give a .blend, .obj, .fbx or .glb file")
     if suffix == ".obj":
-        mesh = _checked(read_obj(path), f"target {path}")
-        obj = mesh_io.object_from_mesh(path.stem, mesh)
+        obj = mesh_io.object_from_mesh(path.stem, _checked(read_obj(path), f"target {path}"))
         obj.rotation_euler = (math.pi / 2, 0.0, 0.0)
-        return Target(str(path), mesh, obj)
-    if suffix not in CONTAINERS:
+        objects = [obj]
+    elif suffix in CONTAINERS:
+        objects = _character_in(path, name)
+    else:
         raise ExCloneError(f"target {path}: unsupported file type '{path.suffix}' "
                            "(use .blend, .obj, .fbx or .glb)")
-    obj = mesh_io.checked_editable(pick_object(path, name, "target", need_shape_keys=False))
-    description = f"{path}:{obj.name}"
+    for obj in objects:
+        mesh_io.checked_editable(obj)
+    _keep_only(objects)
+    face = workflow.character_face(character.parts(objects))
+    obj = objects[face.part]
+    description = str(path) if suffix == ".obj" else f"{path}:{obj.name}"
     mesh = _checked(mesh_io.mesh_from_object(obj, what="target"), f"target {description}")
-    _keep_only(obj)
-    return Target(description, mesh, obj)
+    return Target(description, mesh, obj, objects, face)
 
 
 def save_copy(path, holds):

@@ -1,7 +1,9 @@
-"""Operators: landmarks, registration and cloning of expressions onto the target mesh.
+"""Operators: landmarks, registration and cloning of expressions onto the target character.
 
-The target is the scene's ExClone target or the active object; the source is the built-in
-library, the scene's source object or the selected mesh with shape keys. Every operator checks
+The target is the character of the scene's ExClone target or of the active object (any of its
+objects, or its empty parent; without a hierarchy, the selected meshes): its face is found and
+only the head of the face's object is solved (workflow.resolve_target). The source is the
+built-in library, the scene's source object or the selected mesh with shape keys. Every operator checks
 its input before it changes anything, and is one undo step. Whatever goes wrong (a user error, a
 cancel, a bug) is reported as one line and the operator returns CANCELLED.
 """
@@ -16,7 +18,7 @@ from ..core.library import arkit_blendshapes
 from ..core.mesh import PolyMesh
 from ..core.reports import fit_error, measures_clause, summary
 from . import landmarks as stored_landmarks
-from . import mesh_io, workflow
+from . import character, mesh_io, workflow
 from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
 from .reporting import failed, in_object_mode, reporting
 
@@ -30,10 +32,12 @@ def _poll_target(cls, context):
         return False
     target = workflow.target_object(context)
     if target is None:
-        cls.poll_message_set("Nothing selected: make the target head the active object")
+        cls.poll_message_set("Nothing selected: make the character (or its head) the active "
+                             "object")
         return False
-    if target.type != 'MESH':
-        cls.poll_message_set(f"'{target.name}' is not a mesh: the target must be a mesh object")
+    if target.type != 'MESH' and not character.family(target):
+        cls.poll_message_set(f"'{target.name}' is not a mesh and has no mesh objects under it: "
+                             "select the character's mesh objects")
         return False
     return True
 
@@ -55,8 +59,8 @@ def _poll_source(cls, context):
 @dataclass
 class Plan:
     """An engine operator's checked inputs, and what to do with the engine's result."""
-    inputs: tuple                 # run_engine's (source, target mesh, landmarks, settings, transfer)
-    target: object
+    inputs: tuple                 # run_engine's (source, CharacterFace, landmarks, settings, transfer)
+    target: object                # the face's object (its mesh must not change while it runs)
     finish: object                # callable(workflow.Run) -> the operator's return set
 
 
@@ -188,38 +192,43 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
 
     def plan(self, context):
         started = time.perf_counter()
-        target = workflow.checked_target(workflow.target_object(context))
-        source, source_obj = workflow.resolve_source(context, target, self.use_library)
+        source, source_obj = workflow.resolve_source(context, workflow.target_object(context),
+                                                     self.use_library)
+        target = workflow.resolve_target(context, source, source_obj)
+        face_object, head = target.face_object, target.face.head
         wanted = self._wanted(context, source.names)
         key_names = dict(zip(wanted, workflow.key_names(self.prefix, wanted)))
-        existing = target.data.shape_keys.key_blocks.keys() if target.data.shape_keys else []
+        existing = face_object.data.shape_keys.key_blocks.keys() \
+            if face_object.data.shape_keys else []
         skipped = [] if self.replace_existing else \
             [name for name in wanted if key_names[name] in existing]
         wanted = [name for name in wanted if name not in skipped]
         if not wanted:
             self.report({'WARNING'}, f"All {len(skipped)} expressions already exist as shape "
-                                     "keys on the target; enable Replace Existing to redo them")
+                                     f"keys on '{face_object.name}'; enable Replace Existing "
+                                     "to redo them")
             return {'CANCELLED'}
-        target_mesh = workflow.basis_mesh(target, "target")
-        landmarks = workflow.landmark_pairs(source, source_obj, target, target_mesh)
 
         def finish(run):
             result = run.result
             deltas = result.deltas[[result.names.index(name) for name in wanted]]
             if self.parts == 'STILL':
-                deltas[:, workflow.still_parts_mask(target_mesh, result.target_landmarks)] = 0.0
-            added, replaced, also_skipped = mesh_io.write_shape_keys(
-                target, [key_names[name] for name in wanted], deltas,
-                replace_existing=self.replace_existing)
-            measured = measures_clause(workflow.measure(target.name, target_mesh, result,
+                deltas[:, workflow.still_parts_mask(head.mesh, result.target_landmarks)] = 0.0
+            added, replaced, also_skipped = workflow.write_face_keys(
+                target, [key_names[name] for name in wanted], deltas, self.replace_existing)
+            # the character's other objects (target.others(): eyes, brows, teeth) get the same
+            # keys from the head's world-space deltas here
+            measured = measures_clause(workflow.measure(face_object.name, head.mesh, result,
                                                         wanted, deltas))
             self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
                                           time.perf_counter() - started, result.quality)
+                        + f"; {target.face.description()}"
                         + (f"; {measured}" if measured else "")
                         + (" (registration reused)" if run.cached else ""))
             return {'FINISHED'}
 
-        return Plan((source, target_mesh, landmarks, self.settings(context)), target, finish)
+        return Plan((source, target.face, target.landmarks, self.settings(context)), face_object,
+                    finish)
 
 
 class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
@@ -239,23 +248,24 @@ class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
 
     def plan(self, context):
         started = time.perf_counter()
-        target = workflow.checked_target(workflow.target_object(context))
         source = workflow.library_source()
-        target_mesh = workflow.basis_mesh(target, "target")
-        landmarks = workflow.landmark_pairs(source, None, target, target_mesh)
+        target = workflow.resolve_target(context, source, None)
 
         def finish(run):
             names, deltas, missing = arkit_blendshapes(run.result.names, run.result.deltas)
-            added, replaced, skipped = mesh_io.write_shape_keys(
-                target, names, deltas, replace_existing=self.replace_existing)
+            added, replaced, skipped = workflow.write_face_keys(target, names, deltas,
+                                                                self.replace_existing)
+            # the character's other objects (target.others(): eyes, brows, teeth) get the same
+            # keys from the head's world-space deltas here
             text = summary(added, replaced, skipped, time.perf_counter() - started,
-                           run.result.quality)
+                           run.result.quality) + f"; {target.face.description()}"
             if missing:
                 text += f"; not in the library: {', '.join(missing)}"
             self.report({'INFO'}, "ARKit: " + text)
             return {'FINISHED'}
 
-        return Plan((source, target_mesh, landmarks, self.settings(context)), target, finish)
+        return Plan((source, target.face, target.landmarks, self.settings(context)),
+                    target.face_object, finish)
 
 
 def _remove_previews():
@@ -284,30 +294,30 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
 
     def plan(self, context):
         started = time.perf_counter()
-        target = workflow.checked_target(workflow.target_object(context))
-        source, source_obj = workflow.resolve_source(context, target, self.use_library)
-        target_mesh = workflow.basis_mesh(target, "target")
-        landmarks = workflow.landmark_pairs(source, source_obj, target, target_mesh)
+        source, source_obj = workflow.resolve_source(context, workflow.target_object(context),
+                                                     self.use_library)
+        target = workflow.resolve_target(context, source, source_obj)
 
         def finish(run):
             _remove_previews()
             if self.preview:
                 mesh = PolyMesh(run.result.registered_source, source.mesh.loop_totals,
                                 source.mesh.loop_vertices)
-                preview = mesh_io.object_from_mesh(PREVIEW_NAME, mesh)
+                preview = mesh_io.object_from_mesh(PREVIEW_NAME, mesh)   # world space
                 preview[PREVIEW_TAG] = True
-                preview.matrix_world = target.matrix_world
                 preview.display_type = 'WIRE'
                 preview.hide_render = True
             seconds = time.perf_counter() - started
-            self.report({'INFO'}, f"Registered {source.description} onto '{target.name}': "
+            self.report({'INFO'}, f"Registered {source.description} onto "
+                                  f"'{target.face_object.name}' ({target.face.region()}): "
                                   f"{fit_error(run.result.quality)} of the target's size, "
                                   f"{len(run.result.target_landmarks)} {run.landmark_kind} "
                                   "landmarks, " + (f"cached result ({seconds:.1f} s)"
                                                    if run.cached else f"{seconds:.1f} s"))
             return {'FINISHED'}
 
-        return Plan((source, target_mesh, landmarks, self.settings(context), False), target, finish)
+        return Plan((source, target.face, target.landmarks, self.settings(context), False),
+                    target.face_object, finish)
 
 
 class EXCLONE_OT_remove_preview(bpy.types.Operator):

@@ -3,9 +3,13 @@ of inputs (a cache), and the options applied to its result.
 
 A source is a core.library.ExpressionLibrary (the built-in library, or one read from a mesh
 object's shape keys) plus, kept here beside it, the Blender object it came from (None for the
-built-in library), whose stored landmarks count. Meshes are read in their local coordinates from
-the base mesh (modifiers are not applied, so vertex ids match the shape keys); a target with
-shape keys is read at its reference (basis) key.
+built-in library), whose stored landmarks count. Meshes are read from the base mesh (modifiers
+are not applied, so vertex ids match the shape keys); a target with shape keys is read at its
+reference (basis) key.
+
+A target is a character (blender/character.py): its mesh objects are read in world space, the
+face is found on them (core.character), and only the head region of the face's object is
+solved; its keys are written back in that object's local coordinates.
 """
 import hashlib
 import threading
@@ -15,6 +19,7 @@ from functools import lru_cache
 
 import numpy as np
 
+from ..core import character as core_character
 from ..core.cloning import CloneSettings, fit_faces, transfer_expressions
 from ..core.errors import Cancelled, ExCloneError
 from ..core.expression_measures import measure_clone, summary
@@ -22,6 +27,7 @@ from ..core import data
 from ..core.landmarks import checked_pairs
 from ..core.library import ExpressionLibrary, load_library
 from ..core.mesh import PolyMesh, vertex_parts, welded
+from . import character
 from . import landmarks as stored_landmarks
 from . import mesh_io, preferences
 
@@ -53,12 +59,14 @@ def target_object(context):
 
 
 def source_object(context, target):
-    """The scene's chosen source object, else the one selected mesh with shape keys other than
-    the target. Raises ExCloneError if there is none or several."""
+    """The scene's chosen source object, else the one selected mesh with shape keys outside the
+    target's character (its hierarchy). Raises ExCloneError if there is none or several."""
     chosen = settings_of(context).source
     if chosen is not None:
         return chosen
-    candidates = [obj for obj in context.selected_objects if obj != target and has_shape_keys(obj)]
+    own = [target, *character.family(target)] if target is not None else []
+    candidates = [obj for obj in context.selected_objects
+                  if obj not in own and has_shape_keys(obj)]
     if not candidates:
         raise ExCloneError("Select a source mesh with shape keys as well as the target "
                            "(active), or enable Built-in Library")
@@ -168,6 +176,95 @@ def landmark_pairs(source, source_obj, target_obj, target_mesh):
     return pairs
 
 
+@dataclass
+class Target:
+    """The character an engine operator works on: its mesh objects and where its face is."""
+    objects: list                 # the character's mesh objects (the face's first found)
+    face: object                  # core.character.CharacterFace: the face's object and head
+    landmarks: dict               # {"source", "target": ids in the head's numbering} or None
+
+    @property
+    def face_object(self):
+        return self.objects[self.face.part]
+
+    def others(self):
+        """The character's objects other than the face's (eyes, brows, teeth...)."""
+        return [obj for obj in self.objects if obj != self.face_object]
+
+
+def resolve_target(context, source, source_obj):
+    """The Target of the operators: the character of the active (or chosen) object, its face
+    found, the landmarks (edited ones, if any) in its head's numbering. Raises ExCloneError."""
+    context.view_layer.update()       # objects moved by a script: their matrix_world
+    objects = character.character_objects(target_object(context), context.selected_objects,
+                                          exclude=[source_obj])
+    for obj in objects:
+        mesh_io.checked_editable(obj)
+    return target_of(objects, source, source_obj)
+
+
+def target_of(objects, source, source_obj=None):
+    """The Target of a character's mesh objects (in a scene, transforms evaluated)."""
+    parts = character.parts(objects)
+    marked = [k for k, obj in enumerate(objects) if stored_landmarks.is_edited(obj)]
+    try:
+        face = character_face(parts)
+    except ExCloneError:
+        if not marked:
+            raise
+        face = core_character.whole(parts[marked[0]], marked[0])
+    if marked and face.part != marked[0]:         # edited landmarks say where the face is
+        face = core_character.whole(parts[marked[0]], marked[0])
+    face_object = objects[face.part]
+    landmarks = landmark_pairs(source, source_obj, face_object,
+                               basis_mesh(face_object, "target"))
+    return Target(objects, *in_head(face, parts[face.part], landmarks))
+
+
+def in_head(face, part, landmarks):
+    """(face, landmarks) with the given landmark pairs' target ids (the face object's own
+    numbering) in its head's; where one lies outside the head, the object is solved whole (its
+    Part) with them as they are. landmarks None: (face, None)."""
+    if landmarks is None:
+        return face, None
+    inside = face.head.head_ids(landmarks["target"])
+    if inside is None:
+        return core_character.whole(part, face.part), landmarks
+    return face, {"source": list(landmarks["source"]), "target": inside.tolist()}
+
+
+def face_object_deltas(obj, face, head_deltas):
+    """(E, n, 3) the head's world-space deltas (E, m, 3) as the face's object's own (obj; face:
+    its CharacterFace): in its local coordinates, zero outside the head."""
+    return character.local_deltas(obj, face.head.spread(head_deltas))
+
+
+def write_face_keys(target, names, head_deltas, replace_existing):
+    """The head's world-space deltas (E, m, 3) as shape keys of the face's object (Target), in
+    its local coordinates (zero outside the head); (added, replaced, skipped) key names."""
+    return mesh_io.write_shape_keys(target.face_object, names,
+                                    face_object_deltas(target.face_object, target.face,
+                                                       head_deltas),
+                                    replace_existing=replace_existing)
+
+
+def character_face(parts):
+    """core.character.find on the character's parts (world space), remembered for the same
+    meshes; a lone mesh on which no face is found is used whole (the face's own geometry then
+    places the landmarks, or says why it cannot)."""
+    key = digest(*[value for part in parts for value in (
+        part.name, part.mesh.vertices, part.mesh.loop_totals, part.mesh.loop_vertices)])
+    if key not in _faces:
+        try:
+            remember(_faces, key, core_character.find(parts))
+        except ExCloneError as error:
+            if len(parts) > 1:
+                raise
+            remember(_faces, key, core_character.whole(parts[0], 0, not_found=str(error)))
+    _faces.move_to_end(key)
+    return _faces[key]
+
+
 def digest(*parts):
     """A key for a cache: arrays by their bytes, anything else by its repr."""
     h = hashlib.sha1()
@@ -177,11 +274,13 @@ def digest(*parts):
     return h.hexdigest()
 
 
+_faces = OrderedDict()      # character meshes -> core.character.CharacterFace (or the error)
 _fits = OrderedDict()       # fit key -> core.cloning.FaceFit
 _results = OrderedDict()    # fit key + expressions -> core.cloning.CloneResult
 
 
 def clear_cache():
+    _faces.clear()
     _fits.clear()
     _results.clear()
 
@@ -193,14 +292,20 @@ def remember(cache, key, value, size=CACHE_SIZE):
         cache.popitem(last=False)
 
 
-def run_engine(source, target_mesh, landmarks, clone_settings, transfer=True, progress=None):
+def run_engine(source, target, landmarks, clone_settings, transfer=True, progress=None):
     """The engine's fit of source onto target (transfer=False: Register), or its result for
-    every source expression (transfer=True: Clone). The fit is reused while the meshes, the
-    landmarks and the settings are unchanged, so Clone after Register only transfers; Run.cached
-    says whether it was."""
+    every source expression (transfer=True: Clone). target: a core.character.CharacterFace (its
+    head mesh is solved, guided by the found face, its cut held still; landmarks in the head's
+    numbering) or a PolyMesh used whole. The fit is reused while the meshes, the landmarks and
+    the settings are unchanged, so Clone after Register only transfers; Run.cached says whether
+    it was."""
+    if isinstance(target, PolyMesh):
+        target = core_character.whole(core_character.Part("target", target), 0)
+    target_mesh = target.head.mesh
+    guide = target.guide if landmarks is None else None     # it only guides automatic ones
     key = digest(source.mesh.vertices, source.mesh.loop_totals, source.mesh.loop_vertices,
                   target_mesh.vertices, target_mesh.loop_totals, target_mesh.loop_vertices,
-                  landmarks, clone_settings)
+                  target.head.fixed, *_guide_parts(guide), landmarks, clone_settings)
     kind = "automatic" if landmarks is None else "edited"
     cached = key in _fits
     if cached:
@@ -211,9 +316,16 @@ def run_engine(source, target_mesh, landmarks, clone_settings, transfer=True, pr
             if progress:
                 progress(fraction * (0.8 if transfer else 1.0), message)
 
-        fit = fit_faces(source.mesh, target_mesh, landmarks=landmarks,
-                        source_landmarks=source.automatic_landmarks, settings=clone_settings,
-                        progress=fit_progress)
+        try:
+            fit = fit_faces(source.mesh, target_mesh, landmarks=landmarks,
+                            source_landmarks=source.automatic_landmarks,
+                            settings=clone_settings, progress=fit_progress, face_guide=guide,
+                            fixed_vertices=target.head.fixed)
+        except ExCloneError as error:
+            if target.not_found is None or landmarks is not None:
+                raise
+            # neither rendering nor the mesh's geometry found the face: say what to do
+            raise ExCloneError(f"{target.not_found} (by its geometry: {error})") from error
         remember(_fits, key, fit)
     if transfer:
         result_key = key + digest(source.deltas, source.names)
@@ -225,6 +337,14 @@ def run_engine(source, target_mesh, landmarks, clone_settings, transfer=True, pr
     if progress:
         progress(1.0, "done")
     return Run(_results[result_key] if transfer else fit, kind, cached)
+
+
+def _guide_parts(guide):
+    """What identifies a FaceGuide in a cache key."""
+    if guide is None:
+        return (None,)
+    return (guide.frame.rotation, guide.frame.origin, list(guide.points),
+            np.stack(list(guide.points.values())), guide.eye_distance)
 
 
 def clone_settings(context, preset, formulation):

@@ -1,0 +1,136 @@
+"""Real characters as targets (the shared MakeHuman files, as Blender loads them): the operators
+find the face's object and head among all the character's objects, in any orientation and
+units, solve the head only (nothing below the neck moves), and write world-space results back
+in each object's local space. Skipped without the shared data."""
+import json
+import re
+
+import numpy as np
+import pytest
+
+import bpy
+
+from exclone_addon.blender import character, workflow
+from exclone_addon.core.library import arkit_blendshapes
+from scripts import batch_clone
+
+# file -> the object the face must be found on
+FACE_OBJECT = {
+    "mh_male_body.blend": "Body", "mh_male_body.glb": "Body", "mh_female_old_body.fbx": "Body",
+    "mh_head_lowpoly.glb": "Head", "mh_head_dense.blend": "Head",
+    "mh_stylised_head.blend": "Head", "mh_child_body_expr.blend": "Body",
+}
+STILL = 1e-4          # x the face object's diagonal: the most a vertex outside the head may move
+EXACT = 1e-5          # x the diagonal: world-space key against the engine's delta (float32 keys)
+LID_DOWN = 0.05       # eye distances: the least the blinking upper lid comes down
+LIP_DOWN = 0.05       # eye distances: the least jawOpen takes the lower lip down
+
+
+def _load(path):
+    """Every object of the file in the scene (appended or imported), transforms evaluated."""
+    if path.suffix == ".blend":
+        with bpy.data.libraries.load(str(path), link=False) as (source, loaded):
+            loaded.objects = list(source.objects)
+        for obj in loaded.objects:
+            bpy.context.scene.collection.objects.link(obj)
+    elif path.suffix == ".glb":
+        bpy.ops.import_scene.gltf(filepath=str(path))
+    else:
+        bpy.ops.import_scene.fbx(filepath=str(path))
+    bpy.context.view_layer.update()
+    return {obj.name: obj for obj in bpy.context.scene.objects}
+
+
+def _activate(obj):
+    for other in bpy.context.scene.objects:
+        other.select_set(False)
+    bpy.context.view_layer.objects.active = obj
+
+
+def _not_the_face(objects, face_name):
+    """An object of the character other than the face's (its empty parent, else a small mesh):
+    the operators must find the face from any of them."""
+    empties = [obj for obj in objects.values() if obj.type == 'EMPTY' and obj.children]
+    if empties:
+        return empties[0]
+    others = [obj for obj in objects.values() if obj.type == 'MESH' and obj.name != face_name
+              and (obj.parent is not None or obj.children)]
+    return others[0] if others else objects[face_name]
+
+
+def _world_key(obj, name):
+    """(n, 3) a shape key's displacement from the basis, in world space."""
+    key = obj.data.shape_keys
+    count = len(obj.data.vertices)
+    co, basis = np.empty(count * 3, np.float32), np.empty(count * 3, np.float32)
+    key.key_blocks[name].data.foreach_get("co", co)
+    key.reference_key.data.foreach_get("co", basis)
+    return (co - basis).reshape(-1, 3).astype(np.float64) @ character.linear_part(obj).T
+
+
+def _last_report(capfd):
+    lines = [line for line in capfd.readouterr().out.splitlines() if line.strip()]
+    return lines[-1] if lines else ""
+
+
+@pytest.mark.parametrize("file_name", sorted(FACE_OBJECT))
+def test_generate_arkit_on_a_whole_character(file_name, shared_data, capfd):
+    workflow.clear_cache()
+    objects = _load(shared_data / "characters" / file_name)
+    face_name = FACE_OBJECT[file_name]
+    face_obj = objects[face_name]
+    _activate(_not_the_face(objects, face_name))
+    assert bpy.ops.exclone.generate_arkit_shapes() == {'FINISHED'}
+    message = _last_report(capfd)
+    region = re.search(rf"face found on '{face_name}' \(head region: ([\d,]+) of ([\d,]+) "
+                       r"vertices\)", message)
+    assert region, message
+    print(f"{file_name}: {message}")
+
+    # the engine's result, reused from its cache: what the keys must show in world space
+    context = bpy.context
+    target = workflow.resolve_target(context, workflow.library_source(), None)
+    assert target.face_object == face_obj
+    run = workflow.run_engine(workflow.library_source(), target.face, target.landmarks,
+                              workflow.clone_settings(context, "DEFAULT", "reduced"))
+    assert run.cached
+    names, head_deltas, _ = arkit_blendshapes(run.result.names, run.result.deltas)
+    head, guide = target.face.head, target.face.guide
+    world = character.world_polymesh(face_obj).vertices
+    size = np.linalg.norm(world.max(axis=0) - world.min(axis=0))
+    outside = np.setdiff1d(np.arange(len(world)), head.vertex_ids)
+    for name in ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "browInnerUp"):
+        moved = _world_key(face_obj, name)
+        wanted = head.spread(head_deltas[names.index(name)][None])[0]
+        assert np.abs(moved - wanted).max() <= EXACT * size, name
+        if len(outside):
+            assert np.linalg.norm(moved[outside], axis=1).max() < STILL * size, name
+
+    # the face's own axes: up, and the character's left is +X in these files
+    up, left = guide.frame.rotation[:, 1], guide.frame.rotation[:, 0]
+    assert left[0] > 0.9 and up[2] > 0.9, (left, up)
+    # the landmarks the fit used (head numbering), on the face's object
+    marks = dict(zip(run.result.landmark_names, head.own_ids(run.result.target_landmarks)))
+    lids = {side: marks[f"eyelid_upper_{side}"] for side in ("left", "right")}
+    assert world[lids["left"], 0] > world[lids["right"], 0]
+    lip = marks["lower_lip"]
+    distance = guide.eye_distance
+    assert _world_key(face_obj, "jawOpen")[lip] @ up < -LIP_DOWN * distance
+    blink = _world_key(face_obj, "eyeBlink_L")
+    assert blink[lids["left"]] @ up < -LID_DOWN * distance
+    assert abs(blink[lids["right"]] @ up) < 0.5 * abs(blink[lids["left"]] @ up)
+
+
+def test_the_command_line_picks_the_character_of_a_glb(shared_data, tmp_path):
+    """A .glb without :Object: the face is found on the body (not the alphabetically first mesh,
+    an eyeball), the report says so, and the keys are on the body."""
+    out = tmp_path / "male.blend"
+    code = batch_clone.main(["--target", str(shared_data / "characters" / "mh_male_body.glb"),
+                             "--shapes", "jawOpen,eyeBlink_L", "--no-preview",
+                             "--out", str(out)])
+    assert code == 0
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["outputs"]["target_object"] == "Body"
+    assert re.fullmatch(r"face found on 'Body' \(head region: [\d,]+ of 14,517 vertices\)",
+                        report["inputs"]["face"])
+    assert report["counts"]["shape_keys_added"] == 2

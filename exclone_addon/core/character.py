@@ -1,0 +1,202 @@
+"""A character as a target: which of its meshes carries the face, the head region that is solved,
+and the found face's guidance for the automatic landmarks (docs/method.md §4, §9).
+
+A character is one or more meshes in one (world) space: a full body with separate eyes, brows
+and teeth, a set of objects, or a lone head. The face is found on all of them together
+(core.face_finding, by rendering and detecting it); the mesh the found FaceMesh points land on
+most often is the face's. Only its head region is solved: the polygons wholly inside the region
+make the head mesh given to the engine, and the vertices on the cut (shared with a polygon
+outside) are held still, so nothing below the neck moves.
+"""
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from . import face_finding
+from .errors import ExCloneError
+from .landmarks import NAMES
+from .mesh import PolyMesh, diagonal, welded
+from .orientation import FaceFrame
+
+# The automatic landmarks checked against the FaceMesh points: geometry finds these on a head
+# like the template's, but on a stylised one (huge eyes, a tiny nose) it can take the wrong
+# crease. Further than FAR_FROM_FACEMESH eye distances from FaceMesh's across the face (left-up:
+# a point's depth is where its pixel's ray met the surface, which at an eye corner can be the
+# eyeball behind the lids), FaceMesh's is taken: the front-most skin vertex within
+# ON_THE_RAY eye distances of its ray.
+CROSS_CHECKED = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip",
+                 "eye_inner_left", "eye_inner_right", "eye_outer_left", "eye_outer_right",
+                 "mouth_corner_left", "mouth_corner_right")
+FAR_FROM_FACEMESH = 0.2
+ON_THE_RAY = 0.05
+
+WHAT_TO_DO = ("select the head object, apply its rotation (Object > Apply > Rotation), or place "
+              "the landmarks by hand")
+
+
+@dataclass
+class Part:
+    """One mesh of a character, in world space."""
+    name: str
+    mesh: PolyMesh
+
+
+@dataclass
+class FaceGuide:
+    """What the found face tells the automatic landmarks, in the target's coordinates."""
+    frame: FaceFrame              # the face's own axes (+X left, +Y up, +Z forward)
+    points: dict                  # landmark name -> (3,) its FaceMesh point on the surface
+                                  # (face_finding.FACEMESH_LANDMARKS)
+    eye_distance: float
+
+    def cross_checked(self, names, ids, vertices, candidates):
+        """The automatic landmarks (names, ids) with those too far from their FaceMesh point
+        (CROSS_CHECKED) and those not found at all replaced by FaceMesh's (the front-most of the
+        candidate vertices on its ray); (names in landmarks.NAMES order, ids)."""
+        found = dict(zip(names, np.asarray(ids, dtype=np.int64).tolist()))
+        across = self.frame.rotation[:, :2]                   # left, up
+        flat = cKDTree(vertices[candidates] @ across)
+        for name, point in self.points.items():
+            known = found.get(name)
+            if known is None or (name in CROSS_CHECKED and np.linalg.norm(
+                    (vertices[known] - point) @ across) > FAR_FROM_FACEMESH * self.eye_distance):
+                found[name] = self._on_the_ray(point, vertices, candidates, flat)
+        kept = [name for name in NAMES if name in found]
+        return kept, np.array([found[name] for name in kept], dtype=np.int64)
+
+    def _on_the_ray(self, point, vertices, candidates, flat):
+        """The front-most candidate within ON_THE_RAY eye distances of the point's ray (along
+        the face's forward axis), else the one nearest to the ray."""
+        near = flat.query_ball_point(point @ self.frame.rotation[:, :2],
+                                     ON_THE_RAY * self.eye_distance)
+        if not near:
+            near = [flat.query(point @ self.frame.rotation[:, :2])[1]]
+        near = candidates[np.asarray(near)]
+        return int(near[np.argmax(vertices[near] @ self.frame.rotation[:, 2])])
+
+
+@dataclass
+class HeadCut:
+    """The head region of one mesh as a mesh of its own."""
+    vertex_ids: np.ndarray        # (m,) the head's vertices in the whole mesh's numbering
+    mesh: PolyMesh                # the polygons wholly inside the region, renumbered 0..m-1
+    fixed: np.ndarray             # (k,) head vertices on the cut (held still), head numbering
+    total: int                    # vertices of the whole mesh
+
+    def spread(self, deltas):
+        """(E, total, 3) from the head's (E, m, 3): zero outside the head."""
+        deltas = np.asarray(deltas)
+        whole = np.zeros((len(deltas), self.total, 3), dtype=deltas.dtype)
+        whole[:, self.vertex_ids] = deltas
+        return whole
+
+    def own_ids(self, ids):
+        """Whole-mesh vertex ids of head vertices `ids`."""
+        return self.vertex_ids[np.asarray(ids, dtype=np.int64)]
+
+    def head_ids(self, ids):
+        """Head numbering of whole-mesh vertex ids, or None if any lies outside the head."""
+        ids = np.asarray(ids, dtype=np.int64)
+        at = np.searchsorted(self.vertex_ids, ids)
+        inside = (at < len(self.vertex_ids)) & (self.vertex_ids[np.minimum(
+            at, len(self.vertex_ids) - 1)] == ids)
+        return at if inside.all() else None
+
+
+@dataclass
+class CharacterFace:
+    """Where a character's face is: the part, its head region and the guide (None when the part
+    is used whole, without a found face)."""
+    part: int                     # index of the face's Part
+    name: str
+    head: HeadCut
+    guide: FaceGuide
+    not_found: str = None         # why rendering found no face, when the part is used whole
+
+    def region(self):
+        """What is solved, for a report: "head region: 2,310 of 13,380 vertices"."""
+        count, total = len(self.head.vertex_ids), self.head.total
+        if self.guide is None:
+            return f"whole mesh: {total:,} vertices, no face found by rendering"
+        return f"head region: {count:,} of {total:,} vertices"
+
+    def description(self):
+        found = "face on" if self.guide is None else "face found on"
+        return f"{found} '{self.name}' ({self.region()})"
+
+
+def whole(part, index, not_found=None):
+    """The Part (number `index` of its character) used whole as the head, with no guide: a
+    plain head on which no face was found (not_found: the finder's message), or landmarks
+    placed outside the found head."""
+    n = len(part.mesh.vertices)
+    return CharacterFace(index, part.name,
+                         HeadCut(np.arange(n), part.mesh, np.zeros(0, dtype=np.int64), n), None,
+                         not_found)
+
+
+def find(parts):
+    """The CharacterFace of a character (a list of Parts in one space): the face found on all
+    parts together, the part most of its points land on, that part's head region. ExCloneError
+    saying what to do when no face is found."""
+    if not parts:
+        raise ExCloneError("the character has no mesh to find a face on; " + WHAT_TO_DO)
+    weldings = [welded(part.mesh) for part in parts]
+    vertices, triangles, owner = _together([w[0] for w in weldings])
+    found = face_finding.find_face(vertices, triangles)
+    hits = np.bincount(owner[found.triangle[found.triangle >= 0]], minlength=len(parts))
+    if not hits.any():
+        raise ExCloneError("the face was seen but lands on no mesh; " + WHAT_TO_DO)
+    index = int(np.argmax(hits))
+    joined, weld_index = weldings[index]
+    own_triangles = joined.triangles()
+    first = np.flatnonzero(owner == index)[0]
+    on_part = (found.triangle >= first) & (found.triangle < first + len(own_triangles))
+    found = replace(found, triangle=np.where(on_part, found.triangle - first, -1))
+    region = face_finding.head_region(joined.vertices, own_triangles, found)[weld_index]
+    head = head_cut(parts[index].mesh, region)
+    if len(head.vertex_ids) == 0:
+        raise ExCloneError(f"no head region was found on '{parts[index].name}'; " + WHAT_TO_DO)
+    return CharacterFace(index, parts[index].name, head, guide(found, head.mesh.vertices))
+
+
+def _together(meshes):
+    """All meshes as one: (vertices, triangles, (T,) the mesh each triangle comes from)."""
+    offsets = np.cumsum([0] + [len(mesh.vertices) for mesh in meshes])
+    triangles = [mesh.triangles() + offset for mesh, offset in zip(meshes, offsets)]
+    owner = np.repeat(np.arange(len(meshes)), [len(t) for t in triangles])
+    return (np.concatenate([mesh.vertices for mesh in meshes]),
+            np.concatenate(triangles).astype(np.int64), owner)
+
+
+def head_cut(mesh, region):
+    """HeadCut of a PolyMesh for a (n,) bool vertex mask: the polygons wholly inside it; the
+    vertices they share with the polygons outside are the cut, held still."""
+    totals = np.asarray(mesh.loop_totals, dtype=np.int64)
+    loops = np.asarray(mesh.loop_vertices, dtype=np.int64)
+    polygon_of = np.repeat(np.arange(len(totals)), totals)
+    inside = np.ones(len(totals), dtype=bool)
+    np.logical_and.at(inside, polygon_of, region[loops])
+    keep = inside[polygon_of]
+    ids = np.unique(loops[keep])
+    number = np.full(len(mesh.vertices), -1, dtype=np.int64)
+    number[ids] = np.arange(len(ids))
+    cut = np.intersect1d(ids, loops[~keep])
+    head = PolyMesh(mesh.vertices[ids], totals[inside], number[loops[keep]])
+    return HeadCut(ids, head, number[cut], len(mesh.vertices))
+
+
+def guide(found, vertices):
+    """The FaceGuide of a FoundFace for the head mesh `vertices` (same space): the frame's origin
+    on the face's midline, its size the head's."""
+    up, forward = np.asarray(found.up, dtype=np.float64), np.asarray(found.forward, dtype=float)
+    forward = forward / np.linalg.norm(forward)
+    up = up - (up @ forward) * forward
+    up /= np.linalg.norm(up)
+    left = np.cross(up, forward)          # the character's left (FoundFace's right)
+    points = np.asarray(found.points, dtype=np.float64)
+    origin = np.nanmean(points, axis=0)   # FaceMesh's points are symmetric about the midline
+    frame = FaceFrame(np.stack([left, up, forward], axis=1), origin, diagonal(vertices), 0.0)
+    return FaceGuide(frame, found.landmarks(), float(found.eye_distance))
+
