@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from .errors import ExCloneError
-from .mesh import vertex_parts
+from .mesh import PolyMesh, vertex_parts, welded
 from .surface import Surface
 
 EYE, SKIN, MOUTH, STILL = "eye", "skin", "mouth", "still"
@@ -146,7 +146,8 @@ class Piece:
 
 @dataclass
 class Following:
-    """A follower's motion: deltas (E, m, 3) and the pieces it was cut into."""
+    """A follower's motion: deltas (E, m, 3) and the pieces it was cut into (their ids in the
+    follower's welded numbering)."""
     deltas: np.ndarray
     pieces: list
 
@@ -168,14 +169,15 @@ def follow(face, skin_deltas, names, meshes):
     the face's skin vertices. The teeth of every mesh together set the bite plane (upper and
     lower rows may be objects of their own)."""
     skin_deltas = np.asarray(skin_deltas, dtype=np.float64)
-    meshes = [(np.asarray(v, dtype=np.float64), np.asarray(t, dtype=np.int64).reshape(-1, 3))
-              for v, t in meshes]
+    # copies split at UV seams (glTF, FBX) are one vertex for the rules, and move alike
+    welds = [_welded(v, t) for v, t in meshes]
+    meshes = [(weld.vertices, weld.triangles()) for weld, _ in welds]
     pieces = [[_classified(face, v, ids) for ids in _pieces(v, t)] for v, t in meshes]
     mouth = [(v[p.ids], _within(t, p.ids), p) for (v, t), mine in zip(meshes, pieces)
              for p in mine if p.kind == MOUTH]
     _set_mouth_roles(face, mouth)
     followings = []
-    for (vertices, triangles), mine in zip(meshes, pieces):
+    for (vertices, triangles), mine, (_, index) in zip(meshes, pieces, welds):
         deltas = np.zeros((len(names), len(vertices), 3))
         for piece in mine:
             points = vertices[piece.ids]
@@ -187,8 +189,15 @@ def follow(face, skin_deltas, names, meshes):
             elif piece.kind == MOUTH:
                 deltas[:, piece.ids] = _mouth_motion(face, skin_deltas, names, points,
                                                      piece.roles)
-        followings.append(Following(deltas, mine))
+        followings.append(Following(deltas[:, index], mine))
     return followings
+
+
+def _welded(vertices, triangles):
+    """(welded PolyMesh, (m,) welded id of every vertex) of a triangle mesh (mesh.welded)."""
+    triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    return welded(PolyMesh(np.asarray(vertices, dtype=np.float64),
+                           np.full(len(triangles), 3), triangles.ravel()))
 
 
 def _within(triangles, ids):
