@@ -94,6 +94,7 @@ def test_every_follower_gets_its_keys(male):
     print("followers:", character_keys.summary(male["done"]))
     got = {name: (kinds, count) for name, kinds, count in male["done"]}
     assert got["Eye_L"] == (["eye"], 4) and "Eye_R" not in got     # only the left eye's keys
+    assert got["Teeth"][0] == ["teeth"] and got["Tongue"][0] == ["tongue"]
     assert sorted(male["keys"]["Eye_L"]) == sorted(
         ["eyeLookIn_L", "eyeLookOut_L", "eyeLookUp_L", "eyeLookDown_L"])
     assert {"Eyebrows", "Eyelashes", "Teeth", "Tongue"} <= set(got)

@@ -98,7 +98,10 @@ def follow_character(target, names, head_deltas, result, *, replace_existing=Fal
                            replace_existing=replace_existing)
     except ExCloneError as exc:
         return f"other objects kept still ({exc})"
-    return summary(done) if done else "other objects kept still (none at the face)"
+    clause = summary(done) if done else "other objects kept still (none at the face)"
+    if "tongueOut" in names and not any("tongue" in kinds for _, kinds, _ in done):
+        clause += "; tongueOut opens the jaw only (no tongue object found)"
+    return clause
 
 
 def mark(obj, names):

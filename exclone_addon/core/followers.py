@@ -152,8 +152,15 @@ class Following:
     pieces: list
 
     def kinds(self):
-        """The kinds of its moving pieces, e.g. ["eye"] or ["mouth"], for a report."""
-        return sorted({piece.kind for piece in self.pieces if piece.kind != STILL})
+        """What its pieces are, for a report: e.g. ["eye"], ["skin"], ["teeth", "tongue"]."""
+        kinds = set()
+        for piece in self.pieces:
+            if piece.kind == MOUTH:
+                kinds.update(["tongue"] if (piece.roles == TONGUE).any() else [])
+                kinds.update(["teeth"] if (piece.roles != TONGUE).any() else [])
+            elif piece.kind != STILL:
+                kinds.add(piece.kind)
+        return sorted(kinds)
 
     def moving_keys(self, names, span):
         """The names of the keys that move a vertex by more than KEY_MIN_MOTION of the span."""
