@@ -27,24 +27,6 @@ MADE_BASIS = "exclone_basis"     # object property: ExClone added its reference 
 FOLLOWER_SIZE = 0.5
 
 
-def character_objects(face_obj):
-    """The character's other mesh objects: those under the face object's topmost parent, or,
-    for an object without a parent, the other mesh objects without one in its scenes."""
-    root = face_obj
-    while root.parent is not None:
-        root = root.parent
-    if root is not face_obj:
-        candidates = [root] + list(root.children_recursive)
-    else:
-        candidates = [obj for scene in face_obj.users_scene for obj in scene.objects
-                      if obj.parent is None]
-    others = []
-    for obj in candidates:
-        if obj.type == 'MESH' and obj is not face_obj and obj not in others:
-            others.append(obj)
-    return others
-
-
 def skin_points(skin_vertices, skin_triangles, names, ids):
     """{name: position} of the face's points: the landmarks (names, vertex ids of the skin) if
     they are named ones, else the skin's automatic landmarks (landmarks placed by hand).
@@ -81,20 +63,26 @@ def follow_face(face_obj, names, skin, skin_deltas, points, objects, *, replace_
     return done
 
 
-def follow_character(target, names, head_deltas, result, *, replace_existing=False):
-    """Clone's and Generate ARKit's step for the character's other objects: follow_face with the
-    solved head as the skin. target: the operators' target (its face_object, others() and
-    face.head.mesh, the head in world space); head_deltas (E, m, 3) the head's world-space
-    displacements of the keys `names`; result: the engine's CloneResult (its landmarks in the
-    head's numbering). Returns the report's clause: what each object got, or why none did."""
+def follow_character(target, names, result, *, replace_existing=False):
+    """Clone's and Generate ARKit's step for the character's other objects, after the face
+    object got its keys `names`: follow_face with the solved head region of the face object as
+    the skin, its motion read back from those keys (world space). target: the operators' target
+    (face_object, others(), face.head: the head region's vertex ids); result: the engine's
+    CloneResult (landmarks in the head's numbering). Returns the report's clause: what each
+    object got, or why none did."""
     objects = target.others()
     if not objects:
         return ""
-    head = target.face.head.mesh
-    skin = (head.vertices, head.triangles())
+    face_obj, head = target.face_object, target.face.head
+    world = character.world_mesh(face_obj)
+    inside = np.zeros(len(world.vertices), dtype=bool)
+    inside[head.vertex_ids] = True
+    skin = (world.vertices, world.triangles[inside[world.triangles].all(axis=1)])
+    keyed, local = mesh_io.shape_keys_from_object(face_obj, face_obj.name)
+    deltas = local[[keyed.index(name) for name in names]] @ character.linear_part(face_obj).T
     try:
-        points = skin_points(*skin, result.landmark_names, result.target_landmarks)
-        done = follow_face(target.face_object, names, skin, head_deltas, points, objects,
+        points = skin_points(*skin, result.landmark_names, head.own_ids(result.target_landmarks))
+        done = follow_face(face_obj, names, skin, deltas, points, objects,
                            replace_existing=replace_existing)
     except ExCloneError as exc:
         return f"other objects kept still ({exc})"
@@ -178,20 +166,24 @@ class EXCLONE_OT_remove_keys(bpy.types.Operator):
         if obj is None or obj.type != 'MESH':
             cls.poll_message_set("Make the character's face object the active object")
             return False
-        if not any(MADE in other for other in [obj] + character_objects(obj)):
+        if not any(MADE in other for other in _character(context)):
             cls.poll_message_set(f"ExClone made no keys on '{obj.name}' or its character")
             return False
         return True
 
     @reporting
     def execute(self, context):
-        obj = context.active_object
-        objects = [obj] + character_objects(obj)
+        objects = _character(context)
         touched = [other.name for other in objects if MADE in other]
         removed = remove_keys(objects)
         self.report({'INFO'}, f"Removed {removed} ExClone shape keys from "
                               f"{listed(touched, most=6)}")
         return {'FINISHED'}
+
+
+def _character(context):
+    """The active object's character (blender/character.py: its hierarchy, or the selection)."""
+    return character.character_objects(context.active_object, context.selected_objects)
 
 
 CLASSES = (EXCLONE_OT_remove_keys,)

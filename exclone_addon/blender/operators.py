@@ -14,11 +14,11 @@ import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
 from ..core.errors import ExCloneError
-from ..core.library import arkit_blendshapes
+from ..core.library import ARKIT_BLENDSHAPES, arkit_blendshapes
 from ..core.mesh import PolyMesh
 from ..core.reports import fit_error, measures_clause, summary
 from . import landmarks as stored_landmarks
-from . import character, mesh_io, workflow
+from . import character, character_keys, mesh_io, workflow
 from .properties import FORMULATION_ITEMS, PARTS_ITEMS, PRESET_ITEMS
 from .reporting import failed, in_object_mode, reporting
 
@@ -216,13 +216,15 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
                 deltas[:, workflow.still_parts_mask(head.mesh, result.target_landmarks)] = 0.0
             added, replaced, also_skipped = workflow.write_face_keys(
                 target, [key_names[name] for name in wanted], deltas, self.replace_existing)
-            # the character's other objects (target.others(): eyes, brows, teeth) get the same
-            # keys from the head's world-space deltas here
+            followed = "" if self.parts == 'STILL' else character_keys.follow_character(
+                target, [key_names[name] for name in wanted], result,
+                replace_existing=self.replace_existing)
             measured = measures_clause(workflow.measure(face_object.name, head.mesh, result,
                                                         wanted, deltas))
             self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
                                           time.perf_counter() - started, result.quality)
                         + f"; {target.face.description()}"
+                        + (f"; {followed}" if followed else "")
                         + (f"; {measured}" if measured else "")
                         + (" (registration reused)" if run.cached else ""))
             return {'FINISHED'}
@@ -233,8 +235,8 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
 
 class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
     """One click: the built-in library cloned onto the target as Apple's 52 ARKit blend shape
-    names (browInnerUp and cheekPuff combined from their halves; tongueOut is not in the
-    library)"""
+    names (browInnerUp and cheekPuff combined from their halves; tongueOut opens the jaw and
+    brings the tongue out); the character's eyes, brows, lashes, teeth and tongue follow"""
     bl_idname = "exclone.generate_arkit_shapes"
     bl_label = "Generate ARKit Shapes"
 
@@ -255,10 +257,12 @@ class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
             names, deltas, missing = arkit_blendshapes(run.result.names, run.result.deltas)
             added, replaced, skipped = workflow.write_face_keys(target, names, deltas,
                                                                 self.replace_existing)
-            # the character's other objects (target.others(): eyes, brows, teeth) get the same
-            # keys from the head's world-space deltas here
+            followed = character_keys.follow_character(target, names, run.result,
+                                                       replace_existing=self.replace_existing)
             text = summary(added, replaced, skipped, time.perf_counter() - started,
                            run.result.quality) + f"; {target.face.description()}"
+            text += f"; {len(names)} of {len(ARKIT_BLENDSHAPES)} ARKit shapes" \
+                + (f"; {followed}" if followed else "")
             if missing:
                 text += f"; not in the library: {', '.join(missing)}"
             self.report({'INFO'}, "ARKit: " + text)
