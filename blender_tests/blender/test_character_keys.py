@@ -211,6 +211,14 @@ def test_brows_and_lashes_follow_as_makehuman_refits_them(shared_data):
                 assert error < 0.2 and cosine > 0.98, name
             else:
                 assert error < 0.5 and cosine > 0.9, name
+    # one object with both eyes, the teeth's two rows with their gums, the tongue
+    eyes, teeth, tongue = followers.follow(
+        face, np.zeros((1, len(world.vertices), 3)), ["jawOpen"],
+        [tuple(character.world_mesh(bpy.data.objects[name])) for name in ("Eyes", "Teeth", "Tongue")])
+    assert sorted(piece.side for piece in eyes.pieces if piece.kind == followers.EYE) == [0, 1]
+    roles = np.concatenate([piece.roles for piece in teeth.pieces])
+    assert teeth.kinds() == ["teeth"] and 0.3 < np.mean(roles == followers.LOWER) < 0.7
+    assert tongue.kinds() == ["tongue"]
 
 
 def test_generate_arkit_shapes_keys_the_whole_character(shared_data, capfd):

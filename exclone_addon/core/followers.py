@@ -71,10 +71,10 @@ ROOT_GAP = 0.01
 # 10-64%.
 JAW_PATCH = (0.30, 0.35)
 JAW_RIGIDITY = 0.08
-# A mouth part with at least 20% of its vertices on each side of the bite plane, around teeth
-# of both rows, holds both (gums and palate in one piece): it is split vertex by vertex. A tongue
-# has ~10% above the plane (its back arches up).
-BOTH_ROWS = 0.20
+# A mouth part that holds the teeth of both rows (gums and palate in one piece) is split vertex
+# by vertex: the teeth are planted in it, their centres (median, per row) within 4.5% of the span
+# of it. MakeHuman's gums: 3.0-3.2%; its tongue, which the lower teeth stand beside: 5.6-7.1%.
+GUMS_HOLD = 0.045
 # A tongue: a mouth part below the bite plane, across the midline, at least a quarter of the eye
 # span deep (a tongue is ~80%, a tooth ~8%), whose vertices near the midline (within 10% of its
 # width) run along more than 60% of its depth; a row of teeth is an arch, open behind the front.
@@ -354,7 +354,7 @@ def _triangle_frames(corners):
 
 def _set_mouth_roles(face, mouth):
     """Set every mouth piece's roles (UPPER, LOWER or TONGUE per vertex): each part by its centre
-    against the bite plane, a part round teeth of both rows (gums) vertex by vertex.
+    against the bite plane, a part holding the teeth of both rows (gums) vertex by vertex.
     mouth: [(vertices, triangles, Piece)]."""
     parts = [face.local(v)[vertex_parts(len(v), t) == label]
              for v, t, _ in mouth for label in np.unique(vertex_parts(len(v), t))]
@@ -369,21 +369,21 @@ def _set_mouth_roles(face, mouth):
         for label in np.unique(labels):
             mine = labels == label
             others = np.arange(len(centres)) != k
-            under = local[mine, 1] < plane(local[mine])
-            if min(under.mean(), 1 - under.mean()) >= BOTH_ROWS \
-                    and _holds_both_rows(local[mine], centres[others], below[others]):
-                piece.roles[mine] = np.where(under, LOWER, UPPER)
+            if _holds_both_rows(face, local[mine], centres[others], below[others]):
+                piece.roles[mine] = np.where(local[mine, 1] < plane(local[mine]), LOWER, UPPER)
             elif below[k]:
                 piece.roles[mine] = TONGUE if _is_tongue(face, local[mine]) else LOWER
             k += 1
 
 
-def _holds_both_rows(local, other_centres, other_below):
-    """Whether a part's bounding box holds the centres of other parts of both rows (gums and
-    palate in one piece around the teeth)."""
-    inside = np.all((other_centres >= local.min(axis=0)) & (other_centres <= local.max(axis=0)),
-                    axis=1)
-    return bool(np.any(inside & other_below) and np.any(inside & ~other_below))
+def _holds_both_rows(face, local, other_centres, other_below):
+    """Whether a part (face coordinates) holds the teeth of both rows, as gums and palate in
+    one piece do: the other parts' centres of each row lie (median) within GUMS_HOLD of it."""
+    if not other_below.any() or other_below.all():
+        return False
+    reach = cKDTree(local).query(other_centres)[0]
+    return bool(np.median(reach[other_below]) < GUMS_HOLD * face.span
+                and np.median(reach[~other_below]) < GUMS_HOLD * face.span)
 
 
 def _bite_plane(centres):
