@@ -101,13 +101,13 @@ def test_generate_arkit_on_a_whole_character(file_name, shared_data, capfd):
     outside = np.setdiff1d(np.arange(len(world)), head.vertex_ids)
     for name in ("jawOpen", "eyeBlink_L", "eyeBlink_R", "mouthSmile_L", "browInnerUp"):
         moved = _world_key(face_obj, name)
-        wanted = head.spread(head_deltas[names.index(name)][None])[0]
+        wanted = head.spread(target.face.to_world(head_deltas[names.index(name)][None]))[0]
         assert np.abs(moved - wanted).max() <= EXACT * size, name
         if len(outside):
             assert np.linalg.norm(moved[outside], axis=1).max() < STILL * size, name
 
     # the face's own axes: up, and the character's left is +X in these files
-    up, left = guide.frame.rotation[:, 1], guide.frame.rotation[:, 0]
+    left, up = target.face.turn[:, 0], target.face.turn[:, 1]
     assert left[0] > 0.9 and up[2] > 0.9, (left, up)
     # the landmarks the fit used (head numbering), on the face's object
     marks = dict(zip(run.result.landmark_names, head.own_ids(run.result.target_landmarks)))

@@ -305,8 +305,8 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
         def finish(run):
             _remove_previews()
             if self.preview:
-                mesh = PolyMesh(run.result.registered_source, source.mesh.loop_totals,
-                                source.mesh.loop_vertices)
+                mesh = PolyMesh(target.face.world_points(run.result.registered_source),
+                                source.mesh.loop_totals, source.mesh.loop_vertices)
                 preview = mesh_io.object_from_mesh(PREVIEW_NAME, mesh)   # world space
                 preview[PREVIEW_TAG] = True
                 preview.display_type = 'WIRE'

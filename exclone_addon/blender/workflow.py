@@ -236,7 +236,7 @@ def in_head(face, part, landmarks):
 def face_object_deltas(obj, face, head_deltas):
     """(E, n, 3) the head's world-space deltas (E, m, 3) as the face's object's own (obj; face:
     its CharacterFace): in its local coordinates, zero outside the head."""
-    return character.local_deltas(obj, face.head.spread(head_deltas))
+    return character.local_deltas(obj, face.head.spread(face.to_world(head_deltas)))
 
 
 def write_face_keys(target, names, head_deltas, replace_existing):

@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from . import face_finding
 from .errors import ExCloneError
 from .landmarks import NAMES
-from .mesh import PolyMesh, diagonal, welded
+from .mesh import PolyMesh, diagonal, vertex_parts, welded
 from .orientation import FaceFrame
 
 # The automatic landmarks checked against the FaceMesh points: geometry finds these on a head
@@ -107,12 +107,27 @@ class HeadCut:
 @dataclass
 class CharacterFace:
     """Where a character's face is: the part, its head region and the guide (None when the part
-    is used whole, without a found face)."""
+    is used whole, without a found face).
+
+    A found face's head mesh and guide are in the face's own frame (docs/method.md §3: +X the
+    character's left, +Y up, +Z forward, about a point of the face; the part's units): the
+    engine's size-relative rules (cut-offs against the bounding-box diagonal) then read the same
+    whichever way the character stands. `to_world` turns results back."""
     part: int                     # index of the face's Part
     name: str
     head: HeadCut
     guide: FaceGuide
     not_found: str = None         # why rendering found no face, when the part is used whole
+    turn: np.ndarray = None       # (3, 3) columns: the frame's axes in world space (None: same)
+    origin: np.ndarray = None     # (3,) the frame's origin in world space
+
+    def to_world(self, deltas):
+        """(..., 3) displacements in the head mesh's coordinates, in world space."""
+        return deltas if self.turn is None else np.asarray(deltas) @ self.turn.T
+
+    def world_points(self, points):
+        """(..., 3) positions in the head mesh's coordinates, in world space."""
+        return points if self.turn is None else self.to_world(points) + self.origin
 
     def region(self):
         """What is solved, for a report: "head region: 2,310 of 13,380 vertices"."""
@@ -154,11 +169,33 @@ def find(parts):
     first = np.flatnonzero(owner == index)[0]
     on_part = (found.triangle >= first) & (found.triangle < first + len(own_triangles))
     found = replace(found, triangle=np.where(on_part, found.triangle - first, -1))
-    region = face_finding.head_region(joined.vertices, own_triangles, found)[weld_index]
-    head = head_cut(parts[index].mesh, region)
+    region = _with_inner_parts(joined.vertices, own_triangles,
+                               face_finding.head_region(joined.vertices, own_triangles, found))
+    head = head_cut(parts[index].mesh, region[weld_index])
     if len(head.vertex_ids) == 0:
         raise ExCloneError(f"no head region was found on '{parts[index].name}'; " + WHAT_TO_DO)
-    return CharacterFace(index, parts[index].name, head, guide(found, head.mesh.vertices))
+    world = guide(found, head.mesh.vertices)
+    turn, origin = world.frame.rotation, world.frame.origin
+    head.mesh = PolyMesh((head.mesh.vertices - origin) @ turn, head.mesh.loop_totals,
+                         head.mesh.loop_vertices)
+    own = FaceGuide(FaceFrame(np.eye(3), np.zeros(3), world.frame.diagonal, 0.0),
+                    {name: (point - origin) @ turn for name, point in world.points.items()},
+                    world.eye_distance)
+    return CharacterFace(index, parts[index].name, head, own, turn=turn, origin=origin)
+
+
+def _with_inner_parts(vertices, triangles, region):
+    """The head region plus the separate parts of the same mesh that lie wholly within its
+    bounding box and outside it (the eyeballs, teeth, lashes of a one-mesh head): they are not
+    solved but follow the head in every key (docs/method.md §9), as they did before the cut."""
+    parts = vertex_parts(len(vertices), triangles)
+    low, high = vertices[region].min(axis=0), vertices[region].max(axis=0)
+    outside_box = ~np.all((vertices >= low) & (vertices <= high), axis=1)
+    count = parts.max() + 1
+    inner = (np.bincount(parts, outside_box, count) == 0) & (np.bincount(parts, region, count) == 0)
+    used = np.zeros(len(vertices), dtype=bool)
+    used[triangles.ravel()] = True
+    return region | (inner[parts] & used)
 
 
 def _together(meshes):
