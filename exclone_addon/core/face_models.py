@@ -54,6 +54,19 @@ ROI_SCALE = 1.5
 # The smallest region (side, pixels) that can hold a face FaceMesh can read; an image whose
 # shorter side is smaller holds no face.
 MIN_FACE_PIXELS = 24
+# BlazeFace short range finds faces from about 1/8 to 3/5 of its input's side (16-80 of 128
+# pixels, measured on the astronaut photograph: scores 0.74 at 1/8, 0.94 at 1/6). Smaller faces
+# are looked for in square tiles, each level's tiles TILE_LEVEL_RATIO times smaller than the
+# last's, overlapping by half (a face up to half a tile's side lies whole in one), down to tiles
+# in which a face of SMALLEST_FACE_FRACTION of the image's shorter side fills FACE_IN_TILE (an
+# 80-pixel face in a 1080p frame is found; 35 detector passes when there is no face).
+TILE_LEVEL_RATIO = 2.0
+SMALLEST_FACE_FRACTION = 1.0 / 16.0
+FACE_IN_TILE = 1.0 / 6.0
+# A face near the detector's smallest size is found with a low score and a wrong box (a
+# 120-pixel face in a 1920-pixel frame: score 0.59, box 303 pixels wide); one level down it is
+# found properly, so a level's detections count when one scores at least this.
+TILE_MIN_SCORE = 0.75
 
 # BlazeFace keypoints, in the order the model outputs them. In an upright face the first eye is the
 # one on the image's left (the subject's right eye).
@@ -166,7 +179,9 @@ def ssd_anchor_centres():
     return np.concatenate(centres) * DETECTOR_SIZE
 
 
-def _iou(box, boxes):
+def iou(box, boxes):
+    """Intersection over union of a box (4,) with each of boxes (n, 4) (x_min, y_min, x_max,
+    y_max): (n,)."""
     top_left = np.maximum(box[:2], boxes[:, :2])
     bottom_right = np.minimum(box[2:], boxes[:, 2:])
     overlap = np.prod(np.clip(bottom_right - top_left, 0.0, None), axis=1)
@@ -188,7 +203,7 @@ def non_max_suppression(boxes, scores, keypoints, iou_threshold=NMS_IOU_THRESHOL
     detections = []
     while remaining.size:
         best = remaining[0]
-        overlapping = _iou(boxes[best], boxes[remaining]) > iou_threshold
+        overlapping = iou(boxes[best], boxes[remaining]) > iou_threshold
         overlapping[0] = True  # a zero-area box does not overlap itself
         group = remaining[overlapping]
         if weighted:
@@ -214,6 +229,34 @@ class FaceDetector:
     def detect(self, image_bgr):
         """Faces in an 8-bit BGR image, best first (an empty list when there is none)."""
         image = checked_image(image_bgr)
+        return non_max_suppression(*self._raw(image), weighted=self.weighted_nms)
+
+    def detect_any_size(self, image_bgr):
+        """Faces down to SMALLEST_FACE_FRACTION of an 8-bit BGR image of any size (an 80-pixel
+        face in a 1080p frame): the whole image, then ever smaller overlapping tiles, stopping at
+        the first level that finds a face scoring TILE_MIN_SCORE (so the faces found are the
+        largest ones); without one, whatever scored min_score. Best first; an empty list when
+        there is none."""
+        image = checked_image(image_bgr)
+        height, width = image.shape[:2]
+        levels = [[(image, (0, 0))]] + [
+            [(image[y:y + side, x:x + side], (x, y)) for x, y in tile_corners(width, height, side)]
+            for side in tile_sides(height, width)]
+        weak = []
+        for level in levels:
+            boxes, scores, keypoints = (np.concatenate(parts) for parts in
+                                        zip(*(self._raw(tile, offset) for tile, offset in level)))
+            sure = scores >= max(self.min_score, TILE_MIN_SCORE)
+            if sure.any():
+                return non_max_suppression(boxes[sure], scores[sure], keypoints[sure],
+                                           weighted=self.weighted_nms)
+            weak.append((boxes, scores, keypoints))
+        return non_max_suppression(*(np.concatenate(parts) for parts in zip(*weak)),
+                                   weighted=self.weighted_nms)
+
+    def _raw(self, image, offset=(0, 0)):
+        """(boxes (n, 4), scores (n,), keypoints (n, 6, 2)) above min_score, before suppression,
+        in pixels of the image the region `image` is cut from at `offset` (x, y)."""
         height, width = image.shape[:2]
         # Letterbox: keep the aspect ratio, pad with black around the centre (as MediaPipe does).
         scale = DETECTOR_SIZE / max(height, width)
@@ -227,8 +270,6 @@ class FaceDetector:
         logits, regressors = self.net.forward(["classificators", "regressors"])
         scores = _sigmoid(np.clip(logits.reshape(-1).astype(np.float64), -100.0, 100.0))
         keep = scores >= self.min_score
-        if not keep.any():
-            return []
         raw = regressors.reshape(-1, 16)[keep].astype(np.float64)
         anchors = self.anchors[keep]
         centres = raw[:, 0:2] + anchors
@@ -237,10 +278,31 @@ class FaceDetector:
         # Back from the 128-pixel tensor (continuous coordinates) to image pixel centres.
         to_image_scale = np.array([width / new_w, height / new_h])
         shift = np.array([left, top])
-        boxes = np.hstack([(centres - half_sizes - shift) * to_image_scale,
-                           (centres + half_sizes - shift) * to_image_scale]) - 0.5
-        keypoints = (keypoints - shift) * to_image_scale - 0.5
-        return non_max_suppression(boxes, scores[keep], keypoints, weighted=self.weighted_nms)
+        origin = np.asarray(offset, dtype=np.float64)
+        boxes = np.hstack([(centres - half_sizes - shift) * to_image_scale + origin,
+                           (centres + half_sizes - shift) * to_image_scale + origin]) - 0.5
+        keypoints = (keypoints - shift) * to_image_scale + origin - 0.5
+        return boxes, scores[keep], keypoints
+
+
+def tile_sides(height, width):
+    """The tile sides (pixels) detect_any_size looks in after the whole image, largest first."""
+    smallest_face = max(MIN_FACE_PIXELS, SMALLEST_FACE_FRACTION * min(height, width))
+    side = min(height, width, max(height, width) / TILE_LEVEL_RATIO)
+    sides = []
+    while side >= smallest_face / FACE_IN_TILE:
+        sides.append(int(round(side)))
+        side /= TILE_LEVEL_RATIO
+    return sides
+
+
+def tile_corners(width, height, side):
+    """Top-left corners (x, y) of square tiles of `side` covering the image, overlapping by at
+    least half a tile."""
+    def starts(length):
+        count = int(np.ceil(max(length - side, 0) / (side / 2.0))) + 1
+        return np.round(np.linspace(0, length - side, count)).astype(int)
+    return [(int(x), int(y)) for y in starts(height) for x in starts(width)]
 
 
 def _square_roi(x_min, y_min, x_max, y_max, eye_from, eye_to):
@@ -255,6 +317,12 @@ def roi_from_detection(detection):
     """The landmark model's region for a detected face: its box enlarged 1.5 times, square,
     turned so that the eyes are level."""
     return _square_roi(*detection.box, detection.keypoints[0], detection.keypoints[1])
+
+
+def landmarks_box(landmarks):
+    """(4,) the box of (n, 2 or 3) landmarks: x_min, y_min, x_max, y_max."""
+    points = np.asarray(landmarks, float)[:, :2]
+    return np.concatenate([points.min(axis=0), points.max(axis=0)])
 
 
 def roi_from_landmarks(landmarks):

@@ -1,7 +1,9 @@
 """Live face tracking, one frame at a time: the per-frame session behind one step().
 
-Per frame: BlazeFace on the first frame and whenever tracking is lost, otherwise the region the
-previous frame's landmarks give; FaceMesh's 468 points and the iris model's eye points
+Per frame: BlazeFace on the first frame and whenever tracking is lost (over tiles, so a small
+face in a large frame is found), otherwise the region the previous frame's landmarks give. With
+several faces in view the take follows one: the largest at first, then the same one (the face
+found where it was last seen), never a bystander while it is briefly out of view; FaceMesh's 468 points and the iris model's eye points
 (docs/method.md §10); the tracker's 3D
 shape model fitted to them with head pose, warm-started from the previous frame, the actor's
 neutral calibrated over the first frames with a face (core.tracking, §11); One Euro filters on
@@ -28,6 +30,13 @@ MODEL_TO_BLENDER = Rotation.from_euler("x", 90, degrees=True)
 # times larger. 0.05 instead of tracking's 1e-3 takes the fit from 4 to about 3 iterations with no
 # change in test_live's figures at 3 decimals.
 FIT_TOLERANCE_PX = 0.05
+# A face lost for longer than this may be replaced by another one in view (the largest); until
+# then only a face found where the followed one was last seen, or one about as wide (within this
+# ratio: the actor back in view elsewhere, nearer or farther by up to 40%), is taken up: a face
+# of another size is a bystander. (BlazeFace's box and FaceMesh's points are equally wide: 94.1
+# and 94.0 pixels on the astronaut photograph.)
+FOLLOW_GRACE_S = 1.0
+SAME_WIDTH_RATIO = 1.4
 # The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs).
 STAGES = ("detect", "landmarks", "iris", "fit", "weights")
 
@@ -122,6 +131,8 @@ class FaceTrackingSession:
         self.take = RecordedTake()
         self._frame_size = None       # (width, height) of the take's first frame
         self._roi = None
+        self._followed_box = None     # where the followed face was last seen (pixels)
+        self._seen_at = None          # and when (seconds)
         self._previous_fit = None
         self._last = None             # the last FrameResult with a face
         self._pending = 0             # calibration frames still wanted (0: not calibrating)
@@ -181,8 +192,9 @@ class FaceTrackingSession:
             self._fitter = None
 
     # -- image models (docs/method.md §10)
-    def _find_face(self, image, stage_ms):
-        """Landmarks and presence: from the previous region when tracking, else by detection."""
+    def _find_face(self, image, timestamp, stage_ms):
+        """(Landmarks or None, whether they come from a detection): from the previous region
+        when tracking, else from the followed face's detection."""
         if self._roi is not None and not self.still_images:
             start = time.perf_counter()
             points, presence = self.landmarker.landmarks(image, self._roi)
@@ -190,12 +202,12 @@ class FaceTrackingSession:
             if presence >= face_models.FACE_PRESENCE_THRESHOLD:
                 return points, False
         start = time.perf_counter()
-        detections = self.detector.detect(image)
+        detection = self._followed(self.detector.detect_any_size(image), timestamp)
         stage_ms["detect"] += 1000 * (time.perf_counter() - start)
-        if not detections:
+        if detection is None:
             return None, True
         start = time.perf_counter()
-        points, presence = self.landmarker.landmarks(image, face_models.roi_from_detection(detections[0]))
+        points, presence = self.landmarker.landmarks(image, face_models.roi_from_detection(detection))
         if presence >= face_models.FACE_PRESENCE_THRESHOLD:
             # the detector's box is coarse: a second pass in the region the landmarks give
             # (what the next video frame would use) places the points as tracking does
@@ -207,6 +219,26 @@ class FaceTrackingSession:
             return None, True
         return points, True
 
+    def _followed(self, detections, timestamp):
+        """The detection to track: the one overlapping most where the followed face was last
+        seen, else (within FOLLOW_GRACE_S of losing it) the one closest to its width if within
+        SAME_WIDTH_RATIO; the largest when there is no face to follow or it is gone for longer;
+        None otherwise."""
+        if not detections:
+            return None
+        boxes = np.array([d.box for d in detections])
+        widths = boxes[:, 2] - boxes[:, 0]
+        if self._followed_box is not None and not self.still_images:
+            overlaps = face_models.iou(self._followed_box, boxes)
+            if overlaps.max() > 0.0:
+                return detections[int(np.argmax(overlaps))]
+            if timestamp - self._seen_at < FOLLOW_GRACE_S:
+                followed_width = self._followed_box[2] - self._followed_box[0]
+                ratios = np.maximum(widths / followed_width, followed_width / widths)
+                best = int(np.argmin(ratios))
+                return detections[best] if ratios[best] <= SAME_WIDTH_RATIO else None
+        return detections[int(np.argmax(widths))]
+
     def step(self, image_bgr, timestamp, name="the frame"):
         """One frame (8-bit BGR) at `timestamp` seconds -> FrameResult. name: what an error
         message calls the frame (e.g. capture.Frame.name). A frame that is not an image, is too
@@ -214,9 +246,10 @@ class FaceTrackingSession:
         image = face_models.checked_image(image_bgr, name)
         self._use_image_size(image.shape[1], image.shape[0], name)
         stage_ms = dict.fromkeys(STAGES, 0.0)
-        points, detected = self._find_face(image, stage_ms)
+        points, detected = self._find_face(image, timestamp, stage_ms)
         if points is None:
             return self._lost(stage_ms)
+        self._followed_box, self._seen_at = face_models.landmarks_box(points), timestamp
         roi = face_models.roi_from_landmarks(points)
         self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
         start = time.perf_counter()
