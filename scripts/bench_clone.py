@@ -25,6 +25,13 @@ into another. Cases:
   to the ARKit keys on all its objects: every object appended into an empty scene, then the Generate
   ARKit Shapes operator made active on an object that is not the face's (the face found by
   rendering, the head solved, the other objects' keys written); CPU and wall seconds, peak RSS;
+- target_50k: the face region's 57 expressions onto the demo head made 50,000 vertices
+  (head_of_size: midpoint subdivision while it stays under the size, then `densified`), landmarks
+  to keys in one cold clone: wall seconds per phase, CPU seconds of the fit and of the transfer,
+  peak RSS growth; beside it the same figures of the code before streaming (BEFORE_STREAMING);
+- memory_growth (not with --quick): the same clone onto heads of MEMORY_SIZES vertices (and
+  200,000 with --large), each size in its own subprocess (`--case size_N`): peak RSS growth, KiB
+  per target vertex, and the growth per vertex added from one size to the next, before and now;
 - compare: with ONE set of automatic landmarks (the engine's own, from a first clone) and the same
   schedule, the reduced vs the augmented formulation, and trimesh.registration.nricp_sumner on
   the same source region, target region and landmarks; all errors by one metric (below).
@@ -66,7 +73,8 @@ import scipy
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 from exclone_addon.core import data  # noqa: E402
-from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
+from exclone_addon.core.cloning import (CloneSettings, clone_expressions,  # noqa: E402
+                                        fit_faces, transfer_expressions)
 from exclone_addon.core import mesh as mesh_module  # noqa: E402
 from exclone_addon.core.library import load_library, load_obj_folder  # noqa: E402
 from exclone_addon.core.mesh import (PolyMesh, diagonal, read_obj,  # noqa: E402
@@ -93,6 +101,22 @@ TARGET_FACE_SETUP_S = 2.0      # landmarks + registration + correspondence, face
 TARGET_FACE_TRANSFER_S = 1.0   # transfer of all 57 expressions after that
 TARGET_REDUCED_SPEEDUP = 2.5   # reduced vs augmented registration, at no worse error
 TARGET_TRIMESH_SPEEDUP = 10.0  # reduced vs trimesh nricp_sumner, at equal or better error
+TARGET_50K_S = 6.0             # 57 expressions onto a 50k-vertex head, landmarks to keys (idle)
+TARGET_KIB_PER_VERTEX = 8.0    # peak memory growth per target vertex added, 57 expressions
+MEMORY_SIZES = (4244, 25000, 50000, 100000)
+LARGE_SIZE = 200000
+# The same cases measured with the code before the transfer streamed its expressions (commit
+# 8e62c36: one (E, T, 3, 3) float64 array of wanted gradients and its stacked copies), on this
+# machine while other jobs loaded it (wall seconds are inflated; CPU seconds and memory are not
+# much). Per size: CPU seconds of fit and transfer, peak RSS growth in MiB.
+BEFORE_STREAMING = {"commit": "8e62c36", "sizes": {
+    4244: {"cpu_seconds_fit": 2.73, "cpu_seconds_transfer": 0.70, "peak_rss_growth_mib": 185.4},
+    25000: {"cpu_seconds_fit": 4.21, "cpu_seconds_transfer": 4.82, "peak_rss_growth_mib": 766.3},
+    50000: {"cpu_seconds_fit": 8.03, "cpu_seconds_transfer": 10.72, "peak_rss_growth_mib": 1518.6,
+            "seconds": {"landmarks": 3.89, "registration": 11.62, "correspondence": 5.88,
+                        "transfer": 35.26, "total": 56.66}},
+    100000: {"cpu_seconds_fit": 13.40, "cpu_seconds_transfer": 24.22,
+             "peak_rss_growth_mib": 2905.6}}}
 # the error the targets are judged on, and the ratios reported (other / reduced)
 OVERLAP = "registration_mean_distance_overlap_rel"
 ERROR_RATIOS = {"error": "registration_mean_distance_rel",
@@ -135,6 +159,15 @@ def densified(mesh, n_vertices):
                                np.vstack([np.delete(triangles, split, axis=0), fans]))
 
 
+def head_of_size(n_vertices):
+    """The demo head with about n_vertices: midpoint-subdivided while that stays under the size,
+    then `densified` (front-most triangles split at their centroids) up to it."""
+    mesh = read_obj(DEMO_HEAD)
+    while len(subdivided(mesh).vertices) <= n_vertices:
+        mesh = subdivided(mesh)
+    return densified(mesh, n_vertices)
+
+
 def case_inputs(name):
     """(source mesh, deltas, names, target mesh, source landmarks) of a case. The source's
     automatic landmarks are the ones the bundled library ships (as in the product: a clone from
@@ -149,6 +182,8 @@ def case_inputs(name):
     marks = ([n for n, keep in zip(marks[0], on_face) if keep], marks[1][on_face])
     if name == "face_dense_target":
         target = subdivided(target)
+    if name.startswith("size_"):
+        target = head_of_size(int(name[len("size_"):]))
     return source, deltas, library.names, target, marks
 
 
@@ -256,6 +291,66 @@ def run_case(name):
         # how the clone reads on the target: lid and lip gaps, stretch, flips, motion outside
         "expression_measures": summary(measure_clone(target, cold)),
     }
+
+
+def run_sized_case(name):
+    """One cold clone (fit_faces, then transfer_expressions) of the face region onto a head of
+    the case's size (`size_N`): wall seconds per phase, CPU seconds of fit and transfer, peak RSS
+    growth over the inputs (the process is fresh)."""
+    source, deltas, names, target, marks = case_inputs(name)
+    gc.collect()
+    rss_before, peak_was_reset = rss_baseline_mib()
+    cpu = time.process_time()
+    fit = fit_faces(source, target, source_landmarks=marks)
+    cpu_fit = time.process_time() - cpu
+    result = transfer_expressions(fit, deltas, names)
+    cpu_total = time.process_time() - cpu
+    growth = max_rss_mib() - rss_before
+    return {"target_vertices": int(len(target.vertices)), "expressions": len(names),
+            "seconds": phase_times(result),
+            "cpu_seconds_fit": round(cpu_fit, 2),
+            "cpu_seconds_transfer": round(cpu_total - cpu_fit, 2),
+            "cpu_seconds_landmarks_to_keys": round(cpu_total, 2),
+            "peak_rss_growth_mib": round(growth, 1), "peak_rss_reset_before_clone": peak_was_reset,
+            "kib_per_target_vertex": round(growth * 1024 / len(target.vertices), 2)}
+
+
+def run_target_50k():
+    """The 50k case, its target and the figures before streaming beside it."""
+    now = in_subprocess("size_50000")
+    if "error" in now:
+        return now
+    return {**now, "target_seconds": TARGET_50K_S,
+            "under_target_wall": now["seconds"]["total"] < TARGET_50K_S,
+            "under_target_cpu": now["cpu_seconds_landmarks_to_keys"] < TARGET_50K_S,
+            "before_streaming": {"commit": BEFORE_STREAMING["commit"],
+                                 **BEFORE_STREAMING["sizes"][50000]}}
+
+
+def memory_growth(sizes):
+    """Peak RSS growth at each size (own subprocess each) and per target vertex: overall, and
+    added from the previous size (the growth the target's size causes); before streaming beside."""
+    rows, previous = [], None
+    for size in sizes:
+        print(f"bench_clone: memory at {size} target vertices ...", file=sys.stderr, flush=True)
+        case = in_subprocess(f"size_{size}")
+        if "error" in case:
+            rows.append({"size": size, **case})
+            continue
+        row = {key: case[key] for key in ("target_vertices", "peak_rss_growth_mib",
+                                          "kib_per_target_vertex", "cpu_seconds_fit",
+                                          "cpu_seconds_transfer")}
+        if previous:
+            added = row["target_vertices"] - previous["target_vertices"]
+            row["kib_per_vertex_added"] = round(
+                (row["peak_rss_growth_mib"] - previous["peak_rss_growth_mib"]) * 1024 / added, 2)
+        row["before_streaming"] = BEFORE_STREAMING["sizes"].get(size)
+        rows.append(row)
+        previous = row
+    added = [r["kib_per_vertex_added"] for r in rows if "kib_per_vertex_added" in r]
+    return {"sizes": rows, "target_kib_per_vertex": TARGET_KIB_PER_VERTEX,
+            "under_target": bool(added) and max(added) <= TARGET_KIB_PER_VERTEX,
+            "before_commit": BEFORE_STREAMING["commit"]}
 
 
 def write_cli_inputs(folder):
@@ -540,7 +635,7 @@ def memory_scaling(cases):
              "target_vertices": c["target_vertices"],
              "peak_rss_growth_mib": c["peak_rss_growth_mib"],
              "tracemalloc_peak_mib": c["tracemalloc_peak_mib"]}
-            for name, c in cases.items() if "peak_rss_growth_mib" in c]
+            for name, c in cases.items() if "tracemalloc_peak_mib" in c]
     return sorted(rows, key=lambda r: (r["source_vertices"], r["target_vertices"]))
 
 
@@ -549,6 +644,8 @@ def main(argv=None):
     parser.add_argument("--out", type=Path, help="also write the JSON here")
     parser.add_argument("--quick", action="store_true",
                         help="face case and reduced/augmented only (no trimesh, no full head)")
+    parser.add_argument("--large", action="store_true",
+                        help=f"memory growth up to {LARGE_SIZE:,} target vertices too (~2 GB)")
     parser.add_argument("--case", help=argparse.SUPPRESS)      # internal: one case, in-process
     parser.add_argument("--no-trimesh", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -560,6 +657,8 @@ def main(argv=None):
             result = run_cli_case()
         elif args.case in CHARACTER_FILES:
             result = run_character_case(args.case)
+        elif args.case.startswith("size_"):
+            result = run_sized_case(args.case)
         else:
             result = run_case(args.case)
         print(json.dumps(result))
@@ -573,6 +672,11 @@ def main(argv=None):
     for name in names:
         print(f"bench_clone: case {name} ...", file=sys.stderr, flush=True)
         cases[name] = in_subprocess(name)
+    if not args.quick:
+        print("bench_clone: case target_50k ...", file=sys.stderr, flush=True)
+        cases["target_50k"] = run_target_50k()
+    growth = None if args.quick else \
+        memory_growth(MEMORY_SIZES + ((LARGE_SIZE,) if args.large else ()))
     print("bench_clone: reduced vs augmented"
           + ("" if args.quick else " vs trimesh") + " ...", file=sys.stderr, flush=True)
     compare = in_subprocess("compare", ["--no-trimesh"] if args.quick else [])
@@ -582,6 +686,7 @@ def main(argv=None):
         "quick": args.quick,
         "cases": cases,
         "memory_scaling": memory_scaling(cases),
+        "memory_growth": growth,
         "memory_notes": "peak_rss_growth_mib: ru_maxrss after the cold clone minus the resident "
                         "size after loading the inputs, with the peak reset in between (fresh "
                         "process per case; includes SuperLU factors and the one-time landmark "

@@ -25,7 +25,7 @@ from .registration import Schedule, register, similarity_icp, similarity_transfo
 from .reports import listed
 from .surface import Surface
 from .threads import limited_threads
-from .transfer import Transfer
+from .transfer import CorrespondedTransfer, Transfer
 
 CORRESPONDENCES = ("vertex", "triangle")
 
@@ -433,67 +433,46 @@ def transfer_expressions(fit, source_deltas, names):
     is factorised once per fit and reused by later calls."""
     start = time.perf_counter()
     deltas = _checked_deltas(source_deltas, names, fit.source_weld)
-    result = np.zeros((len(deltas), len(fit.target_region.vertices), 3))
     # an expression that moves nothing gives exactly nothing (the solve would leave ~1e-16)
     moving = deltas.any(axis=(1, 2))
+    if moving.all():
+        result = _transferred(fit, deltas)
+    else:
+        result = np.zeros((len(deltas), len(fit.target_region.vertices), 3))
+        if moving.any():
+            result[moving] = _transferred(fit, deltas[moving])
     if moving.any():
-        result[moving] = _transferred(fit, deltas[moving])
         _follow_unsolved(result, fit, names)
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
     timings["total"] = sum(timings.values())
-    return CloneResult(list(names), result[:, fit.welded_target.index], fit.source_landmarks,
-                       fit.target_landmarks,
+    return CloneResult(list(names), _in_own_numbering(result, fit.welded_target.index),
+                       fit.source_landmarks, fit.target_landmarks,
                        fit.landmark_names, fit.registered_source, timings, dict(fit.quality))
 
 
 def _transferred(fit, deltas):
     """(E, n_target, 3) target displacements of the source expressions' deltas (E, n_source, 3)."""
-    aligned_deltas = deltas @ fit.rotation.T * fit.scale
-    anchors, rest_at, moves_at = _source_at_mapped_vertices(fit, aligned_deltas)
-    wanted = _wanted_gradients(fit, aligned_deltas, rest_at, moves_at)
     if fit._transfer is None:
-        fit._transfer = Transfer(fit.target_region.vertices, fit.target_region.triangles,
-                                 fit.weights, fit.formulation, fit.fixed_vertices)
-    result = fit._transfer(wanted, moves_at[:, anchors], anchors)
+        system = Transfer(fit.target_region.vertices, fit.target_region.triangles, fit.weights,
+                          fit.formulation, fit.fixed_vertices)
+        fit._transfer = CorrespondedTransfer(system, fit.aligned_source, fit.source_region,
+                                             fit.vertex_map, fit.mapped, fit.pairs, fit.weights)
+    result = fit._transfer(deltas @ fit.rotation.T * fit.scale)
     result[:, fit._transfer.fixed] = 0.0       # also where a fixed vertex was left to follow
     if not np.all(np.isfinite(result)):
         raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")
     return result
 
 
-def _source_at_mapped_vertices(fit, aligned_deltas):
-    """The source under each mapped target vertex, sampled once: (mapped vertex ids, rest
-    positions (n_target, 3), displacements (E, n_target, 3)), zeros at unmapped vertices."""
-    n_target = len(fit.target_region.vertices)
-    anchors = np.flatnonzero(fit.vertex_map.valid)
-    rest_at = np.zeros((n_target, 3))
-    moves_at = np.zeros((len(aligned_deltas), n_target, 3))
-    rest_at[anchors] = fit.vertex_map.sample(fit.aligned_source, fit.source_region, anchors)
-    moves_at[:, anchors] = np.moveaxis(fit.vertex_map.sample(
-        np.moveaxis(aligned_deltas, 0, 1), fit.source_region, anchors), 1, 0)
-    return anchors, rest_at, moves_at
-
-
-def _wanted_gradients(fit, aligned_deltas, rest_at, moves_at):
-    """(E, T, 3, 3) the source gradient each target triangle should take: its image's on the
-    source where the vertex map is plausible (mapped), else the weighted mean of its pairs'."""
-    triangles, mapped = fit.target_region.triangles, fit.mapped
-    wanted = np.zeros((len(aligned_deltas), len(triangles), 3, 3))
-    if mapped.any():
-        corners = triangles[mapped]
-        rest = rest_at[corners]                                                 # (m, 3, 3)
-        wanted[:, mapped] = deformation.corner_gradients(rest, rest + moves_at[:, corners])
-    paired = ~mapped & (fit.weights > 0)
-    if paired.any():
-        rows = fit.pairs[paired]
-        used = np.unique(rows.indices)              # only the source triangles some pair uses
-        gradients = deformation.full_gradients(fit.aligned_source,
-                                               fit.aligned_source + aligned_deltas,
-                                               fit.source_region[used])
-        flat = np.moveaxis(gradients, 0, 1).reshape(len(used), -1)                  # (U, E*9)
-        mean = (rows[:, used] @ flat) / fit.weights[paired, None]
-        wanted[:, paired] = np.moveaxis(mean.reshape(-1, len(aligned_deltas), 3, 3), 1, 0)
-    return wanted
+def _in_own_numbering(result, index):
+    """(E, n_own, 3) the welded displacements `result` (E, n, 3) at every own vertex (index:
+    each own vertex's welded id); `result` itself where the numberings are the same."""
+    if len(index) == result.shape[1] and np.array_equal(index, np.arange(len(index))):
+        return result
+    own = np.empty((len(result), len(index), 3))
+    for expression, welded_motion in zip(own, result):    # one expression at a time: no copy
+        expression[:] = welded_motion[index]               # of the whole (E, n, 3) at once
+    return own
 
 
 @limited_threads

@@ -16,7 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .errors import ExCloneError
-from .mesh import corner_normals, triangle_normals
+from .mesh import triangle_normals
 
 REDUCED = "reduced"
 AUGMENTED = "augmented"
@@ -36,9 +36,22 @@ _EDGES_4 = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0,
 
 def _fourth_corner(corners):
     """Sumner's 4th vertex for triangles given as corners (..., 3, 3): v1 + n / sqrt(|n|)."""
-    n = corner_normals(corners, normalize=False)
-    length = np.linalg.norm(n, axis=-1, keepdims=True)
-    return corners[..., 0, :] + np.divide(n, np.sqrt(length), out=np.zeros_like(n), where=length > 0)
+    return corners[..., 0, :] + fourth_offsets(corners[..., 1, :] - corners[..., 0, :],
+                                               corners[..., 2, :] - corners[..., 0, :])
+
+
+def fourth_offsets(first_edges, second_edges, axis=-1):
+    """v4 - v1 of Sumner's 4th vertex from triangles' edges v2 - v1 and v3 - v1 (xyz along
+    `axis`): n / sqrt(|n|) with n = first x second; 0 where the triangle is degenerate."""
+    a, b = np.moveaxis(first_edges, axis, 0), np.moveaxis(second_edges, axis, 0)
+    n = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):     # the cross product
+        np.multiply(a[i], b[j], out=n[k])
+        n[k] -= a[j] * b[i]
+    root = np.sqrt(np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]))       # sqrt(|n|)
+    np.divide(n, root, out=n, where=root > 0)
+    n[:, root == 0] = 0.0
+    return np.moveaxis(n, 0, axis)
 
 
 def fourth_vertices(vertices, triangles):
@@ -100,12 +113,17 @@ def gradient_operator(vertices, triangles, formulation=REDUCED):
         coeff = _EDGES_4 @ inv                                         # (T, 4 corners, 3 columns)
         cols = np.concatenate([triangles, n + np.arange(t)[:, None]], axis=1)
         n_unknowns = n + t
-    corners = cols.shape[1]
+    return _stacked_operator(coeff, cols, n_unknowns), ok
+
+
+def _stacked_operator(coeff, columns, n_unknowns):
+    """Sparse (3T x n_unknowns) in G's layout: row 3j + c holds coeff[j, i, c] (T, corners, 3)
+    in column columns[j, i] (T, corners)."""
+    t, corners = columns.shape
     rows = 3 * np.arange(t)[:, None, None] + np.arange(3)[None, None, :]   # (T, 1, 3)
     rows = np.broadcast_to(rows, (t, corners, 3))
-    cols = np.broadcast_to(cols[:, :, None], (t, corners, 3))
-    g = sp.csr_matrix((coeff.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * t, n_unknowns))
-    return g, ok
+    cols = np.broadcast_to(columns[:, :, None], (t, corners, 3))
+    return sp.csr_matrix((coeff.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * t, n_unknowns))
 
 
 def unknowns_of(vertices, triangles, formulation=REDUCED):
@@ -124,6 +142,21 @@ def corner_gradients(rest_corners, deformed_corners):
     """
     inv, _ = _inverses(_augmented_edges(rest_corners))
     return _augmented_edges(deformed_corners) @ inv
+
+
+def corner_gradient_operators(rest_vertices, triangles):
+    """corner_gradients from the rest triangles of `rest_vertices` (n, 3), split for many
+    deformations at once into two sparse operators in G's layout (the gradient is linear in the
+    deformed edges, and in the deformed 4th vertex's offset, which itself is not linear):
+
+    - edges (3T x n): applied to the deformed vertices (n, 3), the share of the two edges;
+    - normal (3T x T): applied to fourth_offsets of the deformed triangles (T, 3), the rest.
+    Zeros for degenerate rest triangles, as corner_gradients."""
+    inv, _ = _inverses(_augmented_edges(rest_vertices[triangles]))
+    t = len(triangles)
+    edges = _stacked_operator(_EDGES_3 @ inv[:, :2, :], triangles, len(rest_vertices))
+    normal = _stacked_operator(inv[:, 2:, :], np.arange(t)[:, None], t)
+    return edges, normal
 
 
 def full_gradients(rest, deformed, triangles):

@@ -80,6 +80,12 @@ def _no_unique_solution():
                         "triangles are too thin); clean up the mesh")
 
 
+# Expressions solved together: every (E, ...) array of the transfer is made for this many at a
+# time, so its memory does not grow with the number of expressions; more per block gains little
+# (the factor's back-substitution is as fast per column from about 8 columns on).
+EXPRESSIONS_PER_BLOCK = 8
+
+
 class Transfer:
     def __init__(self, target_vertices, target_triangles, weights,
                  formulation=deformation.REDUCED, fixed=()):
@@ -88,25 +94,72 @@ class Transfer:
         a head cut out of a body): their unknowns are eliminated from the normal equations, and
         a connected part holding any of them is not re-translated afterwards."""
         self.n = len(target_vertices)
+        self.triangles = np.asarray(target_triangles)
         self.grad, _ = deformation.gradient_operator(target_vertices, target_triangles, formulation)
-        self.rest = deformation.unknowns_of(target_vertices, target_triangles, formulation)
-        self.uncovered = np.asarray(weights) <= 0
-        self.uncovered_rows = np.repeat(self.uncovered, 3)          # their rows in G's layout
-        self.identity_blocks = np.tile(np.eye(3), (int(self.uncovered.sum()), 1))
-        self.row_weight = np.where(self.uncovered, 1.0, weights)
+        uncovered = np.asarray(weights) <= 0
+        self.row_weight = np.where(uncovered, 1.0, weights)
+        # the rows a given gradient enters with its weight (uncovered ones take the identity)
+        self.given_rows_weight = np.repeat(np.where(uncovered, 0.0, weights), 3)
+        self.uncovered_rows = np.repeat(uncovered, 3)
         self.fixed = _checked_fixed(fixed, self.n)
         self.free = np.ones(self.grad.shape[1], dtype=bool)
         self.free[self.fixed] = False
-        w_rows = sp.diags(np.repeat(self.row_weight, 3))
-        normal = (self.grad.T @ w_rows @ self.grad).tocsc()
-        normal = normal[self.free][:, self.free]       # Dirichlet: fixed unknowns are 0
-        # a whisper of regularisation keeps the per-part translations definite; they are set
-        # explicitly afterwards (see module docstring)
-        eps = 1e-10 * normal.diagonal().mean()
-        self.factorisation, self.solve = factorised(
-            (normal + eps * sp.identity(normal.shape[0], format="csc")).tocsc())
-        self.rest_gradients = self.grad @ self.rest                             # (3T, 3)
+        self.factorisation, self.solve = factorised(self._normal_matrix())
+        self.constant = self._constant_rhs(target_vertices, target_triangles, formulation)
         self.parts = vertex_parts(self.n, target_triangles)
+        self._part_sums, self._held_parts = self._part_sums_and_held()
+
+    def _normal_matrix(self):
+        """G^T W G on the free unknowns (fixed ones are 0: Dirichlet), with a whisper of
+        regularisation that keeps the per-part translations definite (they are set explicitly
+        afterwards, see the module docstring)."""
+        normal = (self.grad.T @ sp.diags(np.repeat(self.row_weight, 3)) @ self.grad).tocsc()
+        normal = normal[self.free][:, self.free]
+        eps = 1e-10 * normal.diagonal().mean()
+        return (normal + eps * sp.identity(normal.shape[0], format="csc")).tocsc()
+
+    def _constant_rhs(self, vertices, triangles, formulation):
+        """(N, 3) the share of the right-hand side no expression changes: the identity on
+        uncovered triangles, minus the rest shape's own gradients (the unknowns are
+        displacements)."""
+        rest = deformation.unknowns_of(vertices, triangles, formulation)
+        residual = -(self.grad @ rest)                                          # (3T, 3)
+        residual[self.uncovered_rows] += deformation.stacked_identity(
+            int(self.uncovered_rows.sum()) // 3)
+        return self.grad.T @ (np.repeat(self.row_weight, 3)[:, None] * residual)
+
+    def _part_sums_and_held(self):
+        """(P x n) sparse sum over each connected part, and the parts holding a fixed vertex."""
+        n_parts = int(self.parts.max(initial=-1)) + 1
+        sums = sp.csr_matrix((np.ones(self.n), (self.parts, np.arange(self.n))),
+                             shape=(n_parts, self.n))
+        return sums, np.unique(self.parts[self.fixed])
+
+    def pulled(self, operator, triangle_ids):
+        """G^T W over the rows of triangles `triangle_ids` (m,), times `operator` (3m x K) that
+        gives those triangles' stacked gradients (G's layout): the sparse (N x K) that takes
+        whatever the operator is applied to into the right-hand side."""
+        rows = (3 * np.asarray(triangle_ids)[:, None] + np.arange(3)).ravel()
+        weighted = sp.diags(self.given_rows_weight[rows]) @ operator
+        return (self.grad[rows].T @ weighted).tocsr()
+
+    def right_hand_side(self, stacked):
+        """(N, 3B) right-hand sides of B expressions' stacked target gradients (B, 3T, 3), in
+        the solve's layout (as_columns)."""
+        weighted = as_columns(stacked) * self.given_rows_weight[:, None]
+        weighted[self.uncovered_rows] = 0.0          # ignored there, whatever they hold
+        return self.grad.T @ weighted + np.repeat(self.constant, len(stacked), axis=1)
+
+    def solved(self, rhs, anchor_moves=None, anchor_vertices=None):
+        """(n, 3B) target displacements of right-hand sides rhs (N, 3B); anchor_moves (k, 3B):
+        the source's displacement at the corresponding points of target vertices
+        anchor_vertices (k,), to set each covered part's translation."""
+        if self.free.all():
+            solution = self.solve(rhs)
+        else:
+            solution = np.zeros_like(rhs)
+            solution[self.free] = self.solve(rhs[self.free])
+        return self._anchored(solution[: self.n], anchor_moves, anchor_vertices)
 
     def __call__(self, target_gradients, anchor_displacements=None, anchor_vertices=None):
         """target_gradients: (E, T, 3, 3) the source gradient each target triangle should take
@@ -116,37 +169,149 @@ class Transfer:
         target vertices anchor_vertices (k,), to set each covered part's translation.
         Returns target displacements (E, n, 3).
         """
-        e = len(target_gradients)
-        # in place on one stacked copy: at 100k triangles and 57 expressions each (E, 3T, 3)
-        # array is 400 MB, and allocating more of them cost more than the solve
-        given = np.asarray(target_gradients, dtype=np.float64)
-        residual = deformation.stack_gradients(given)
-        if np.may_share_memory(residual, given):     # a view (e.g. one triangle): never write
-            residual = residual.copy()               # into the caller's array
-        residual[:, self.uncovered_rows] = self.identity_blocks                # (E, 3T, 3)
-        residual -= self.rest_gradients
-        residual *= np.repeat(self.row_weight, 3)[:, None]
-        rhs = self.grad.T @ residual.transpose(1, 0, 2).reshape(-1, e * 3)     # (N, 3E)
-        solution = np.zeros_like(rhs)
-        solution[self.free] = self.solve(rhs[self.free])
-        d = solution.reshape(-1, e, 3).transpose(1, 0, 2)[:, : self.n]         # (E, n, 3)
-        return self._anchor(d, anchor_displacements, anchor_vertices)
+        out = np.empty((len(target_gradients), self.n, 3))
+        for block in blocks(len(target_gradients)):
+            stacked = deformation.stack_gradients(np.asarray(target_gradients[block],
+                                                             dtype=np.float64))
+            moves = None if anchor_displacements is None else \
+                as_columns(np.asarray(anchor_displacements[block], dtype=np.float64))
+            out[block] = as_rows(self.solved(self.right_hand_side(stacked), moves,
+                                             anchor_vertices))
+        return out
 
-    def _anchor(self, d, anchor_displacements, anchor_vertices):
-        parts = self.parts
-        count = np.bincount(parts)
-        shift = -np.stack([np.stack([np.bincount(parts, d[k, :, c], len(count)) for c in range(3)], 1)
-                           for k in range(len(d))]) / count[None, :, None]       # (E, P, 3)
+    def _anchored(self, d, anchor_moves, anchor_vertices):
+        """d (n, 3B) with each connected part translated: by the mean gap to its anchors' moves
+        where it has anchors, else back to no mean motion; parts holding a fixed vertex stay."""
+        count = np.asarray(self._part_sums.sum(axis=1))
+        shift = -(self._part_sums @ d) / count
         if anchor_vertices is not None and len(anchor_vertices):
-            owner = parts[anchor_vertices]
+            owner = self.parts[anchor_vertices]
             n_anchor = np.bincount(owner, minlength=len(count))
-            gap = anchor_displacements - d[:, anchor_vertices]                  # (E, k, 3)
-            sums = np.stack([np.stack([np.bincount(owner, gap[k, :, c], len(count))
-                                       for c in range(3)], 1) for k in range(len(d))])
+            by_part = sp.csr_matrix((np.ones(len(owner)), (owner, np.arange(len(owner)))),
+                                    shape=(len(count), len(owner)))
+            sums = by_part @ (anchor_moves - d[anchor_vertices])
             anchored = n_anchor > 0
-            shift[:, anchored] = sums[:, anchored] / n_anchor[anchored, None]
-        shift[:, np.unique(parts[self.fixed])] = 0.0     # held by their fixed vertices
-        return d + shift[:, parts]
+            shift[anchored] = sums[anchored] / n_anchor[anchored, None]
+        shift[self._held_parts] = 0.0
+        d += shift[self.parts]
+        return d
+
+
+class CorrespondedTransfer:
+    """A source's expressions carried through a correspondence onto the target (docs/method.md
+    §7, §8), made once per fit: a target triangle whose corners map onto the source (the vertex
+    map) takes the gradient of its image there, a paired one the weighted mean of its pairs'
+    source gradients, the rest the identity.
+
+    Every share of the right-hand side that is linear in the source's motion is one sparse
+    operator made here, so an expression costs a few sparse products, the 4th vertices of its
+    mapped triangles' images and a back-substitution, in blocks of EXPRESSIONS_PER_BLOCK: no
+    (E, T, 3, 3) array of gradients is ever made."""
+
+    def __init__(self, system, source_rest, source_triangles, vertex_map, mapped, pairs, weights):
+        """system: the target's Transfer; source_rest (n_s, 3) and source_triangles (S, 3) the
+        source region in the target's frame; vertex_map: correspondence.VertexMap onto those
+        triangles; mapped (T,) the target triangles that take their image's gradient; pairs
+        (T x S) sparse triangle pairs and weights (T,) as the fit made them."""
+        self.system = system
+        self.source_rest = source_rest
+        self.anchors = np.flatnonzero(vertex_map.valid)
+        self.sampling = _barycentric_sampling(vertex_map, source_triangles, self.anchors,
+                                              system.n, len(source_rest))
+        rest_at = self.sampling @ source_rest          # the source under each mapped vertex
+        self._image_operators(rest_at, np.flatnonzero(mapped))
+        self.constant = system.constant + self.from_moves @ rest_at
+        self._pair_operators(source_triangles, pairs, weights, np.flatnonzero(~mapped & (weights > 0)))
+
+    @property
+    def factorisation(self):
+        return self.system.factorisation
+
+    @property
+    def fixed(self):
+        return self.system.fixed
+
+    def _image_operators(self, rest_at, mapped_ids):
+        """The mapped triangles' share: their images' gradients (deformation.
+        corner_gradient_operators) pulled into the right-hand side, and the edge differences
+        their images' 4th vertices need."""
+        corners = self.system.triangles[mapped_ids]
+        edges, normal = deformation.corner_gradient_operators(rest_at, corners)
+        self.from_moves = self.system.pulled(edges, mapped_ids)             # (N x n)
+        self.from_offsets = self.system.pulled(normal, mapped_ids)          # (N x m)
+        m, n = len(corners), self.system.n
+        ends = np.repeat(np.arange(m), 2)
+        self.image_edges = [sp.csr_matrix((np.tile([-1.0, 1.0], m), (ends, corners[:, [0, k]].ravel())),
+                                          shape=(m, n)) for k in (1, 2)]
+        self.rest_image_edges = [edge @ rest_at for edge in self.image_edges]
+
+    def _pair_operators(self, source_triangles, pairs, weights, paired_ids):
+        """The paired triangles' share: the source triangles they use, and the weighted mean of
+        those triangles' stacked gradients pulled into the right-hand side."""
+        rows = pairs[paired_ids]
+        used = np.unique(rows.indices)
+        self.used_source_triangles = source_triangles[used]
+        mean = sp.diags(1.0 / weights[paired_ids]) @ rows[:, used]
+        self.from_source_gradients = self.system.pulled(sp.kron(mean, sp.identity(3)), paired_ids) \
+            if len(used) else None
+
+    def __call__(self, deltas, correction=None):
+        """(E, n, 3) target displacements of source deltas (E, n_s, 3) (in the target's frame).
+        correction: optional callable(displacements (B, n, 3), the block's source deltas
+        (B, n_s, 3)) -> (B, n, 3), applied to each block."""
+        out = np.empty((len(deltas), self.system.n, 3))
+        for block in blocks(len(deltas)):
+            moves = self.sampling @ as_columns(deltas[block])                 # (n, 3B)
+            rhs = self._right_hand_side(deltas[block], moves)
+            solved = as_rows(self.system.solved(rhs, moves[self.anchors], self.anchors))
+            out[block] = solved if correction is None else \
+                correction(solved, deltas[block])
+        return out
+
+    def _right_hand_side(self, deltas, moves):
+        """(N, 3B) for B expressions' deltas (B, n_s, 3) and their moves at the target vertices."""
+        b = len(deltas)
+        rhs = np.repeat(self.constant, b, axis=1)
+        rhs += self.from_moves @ moves
+        rhs += self.from_offsets @ self._image_offsets(moves, b)
+        if self.from_source_gradients is not None:
+            gradients = deformation.full_gradients(self.source_rest, self.source_rest + deltas,
+                                                   self.used_source_triangles)
+            rhs += self.from_source_gradients @ as_columns(deformation.stack_gradients(gradients))
+        return rhs
+
+    def _image_offsets(self, moves, b):
+        """(m, 3B) the 4th-vertex offsets of the mapped triangles' deformed images."""
+        first, second = (edge @ moves for edge in self.image_edges)            # (m, 3B)
+        for edges, rest in ((first, self.rest_image_edges[0]), (second, self.rest_image_edges[1])):
+            edges.reshape(-1, 3, b)[...] += rest[:, :, None]
+        offsets = deformation.fourth_offsets(first.reshape(-1, 3, b), second.reshape(-1, 3, b),
+                                             axis=1)
+        return offsets.reshape(len(first), 3 * b)
+
+
+def _barycentric_sampling(vertex_map, source_triangles, ids, n_target, n_source):
+    """Sparse (n_target x n_source): per-source-vertex values at the target vertices `ids` by
+    the vertex map's barycentric coordinates (rows of the other vertices are 0)."""
+    corners = source_triangles[vertex_map.triangle[ids]]                     # (k, 3)
+    return sp.csr_matrix((vertex_map.bary[ids].ravel(), (np.repeat(ids, 3), corners.ravel())),
+                         shape=(n_target, n_source))
+
+
+def blocks(count, size=EXPRESSIONS_PER_BLOCK):
+    """Slices of `count` expressions, `size` at a time."""
+    return [slice(start, min(start + size, count)) for start in range(0, count, size)]
+
+
+def as_columns(values):
+    """(B, k, 3) per-expression vectors -> (k, 3B), the solve's layout: column xyz * B + e
+    (each coordinate's B columns side by side)."""
+    return np.ascontiguousarray(np.transpose(values, (1, 2, 0))).reshape(values.shape[1], -1)
+
+
+def as_rows(columns):
+    """(k, 3B) in the solve's layout -> (B, k, 3)."""
+    return np.transpose(columns.reshape(len(columns), 3, -1), (2, 0, 1))
 
 
 def _checked_fixed(fixed, n_vertices):
