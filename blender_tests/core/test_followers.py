@@ -103,3 +103,9 @@ def test_jaw_motion_is_rigid_and_needs_a_rigid_patch():
     assert np.allclose(points + motion, turn.apply(points) + [0.1, -0.2, 0.0])
     sliding = rng.normal(size=rest.shape) * 0.1          # skin that slides, no bone under it
     assert not followers._jaw_motion(rest, sliding, points).any()
+
+
+def test_eye_look_names_with_and_without_a_prefix():
+    assert followers.eye_look("eyeLookIn_L") == (0, "In")
+    assert followers.eye_look("lib_eyeLookDown_R") == (1, "Down")
+    assert followers.eye_look("eyeBlink_L") is None and followers.eye_look("eyeLookIn") is None

@@ -87,7 +87,8 @@ def follow_character(target, names, result, *, replace_existing=False):
     except ExCloneError as exc:
         return f"other objects kept still ({exc})"
     clause = summary(done) if done else "other objects kept still (none at the face)"
-    if "tongueOut" in names and not any("tongue" in kinds for _, kinds, _ in done):
+    if any(name.endswith("tongueOut") for name in names) \
+            and not any("tongue" in kinds for _, kinds, _ in done):
         clause += "; tongueOut opens the jaw only (no tongue object found)"
     return clause
 

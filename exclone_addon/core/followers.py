@@ -284,10 +284,11 @@ def _fitted_sphere(points):
 # ------------------------------------------------------------------------------ eyes
 
 def eye_look(name):
-    """(side, direction) of an eyeLook* key name ('eyeLookIn_L' -> (0, 'In')), else None."""
+    """(side, direction) of an eyeLook* key name ('eyeLookIn_L' -> (0, 'In'); after a prefix
+    too, as Clone's Prefix option writes them), else None."""
     for direction in EYE_LOOK_DEGREES:
         for side, suffix in enumerate(("_L", "_R")):
-            if name == f"eyeLook{direction}{suffix}":
+            if name.endswith(f"eyeLook{direction}{suffix}"):
                 return side, direction
     return None
 
@@ -421,7 +422,7 @@ def _mouth_motion(face, skin_deltas, names, points, roles):
         if len(patch) >= 3:
             motion[e, jawed] = _jaw_motion(rest, skin_deltas[e, patch], points[jawed])
         tongue = roles == TONGUE
-        if name == "tongueOut" and tongue.any():
+        if name.endswith("tongueOut") and tongue.any():
             motion[e, tongue] += _tongue_out(face, skin_deltas[e], points[tongue] + motion[e, tongue])
     return motion
 
