@@ -11,7 +11,7 @@ from scipy.spatial.distance import pdist
 from scipy.spatial.transform import Rotation
 
 from exclone_addon.blender import character, character_keys, mesh_io
-from exclone_addon.core import followers
+from exclone_addon.core import data, followers
 from exclone_addon.core.cloning import clone_expressions, found_landmarks
 from exclone_addon.core.library import arkit_blendshapes, load_library
 from exclone_addon.core.mesh import PolyMesh
@@ -239,3 +239,18 @@ def test_generate_arkit_shapes_keys_the_whole_character(shared_data, capfd):
     assert {"jawOpen", "tongueOut"} <= set(tongue.key_blocks.keys())
     driven = {fcurve.data_path for fcurve in tongue.animation_data.drivers}
     assert 'key_blocks["tongueOut"].value' in driven
+
+
+def test_remove_exclone_keys_on_a_lone_head_keeps_the_users_keys():
+    """A head without other objects: Remove ExClone Keys takes Generate ARKit's 52 keys (one
+    undo step) and leaves a key of the user's."""
+    obj = mesh_io.object_from_mesh("head", data.demo_head())
+    bpy.context.view_layer.objects.active = obj
+    obj.select_set(True)
+    mesh_io.write_shape_keys(obj, ["mine"], np.zeros((1, len(obj.data.vertices), 3)))
+    assert bpy.ops.exclone.generate_arkit_shapes(preset="fast") == {'FINISHED'}
+    assert len(obj.data.shape_keys.key_blocks) == 2 + 52
+    assert bpy.ops.exclone.remove_keys() == {'FINISHED'}
+    assert [block.name for block in obj.data.shape_keys.key_blocks] == ["Basis", "mine"]
+    with pytest.raises(RuntimeError, match="ExClone made no keys"):
+        bpy.ops.exclone.remove_keys()

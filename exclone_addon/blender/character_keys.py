@@ -63,15 +63,17 @@ def follow_face(face_obj, names, skin, skin_deltas, points, objects, *, replace_
     return done
 
 
-def follow_character(target, names, result, *, replace_existing=False):
+def follow_character(target, names, result, *, replace_existing=False, still=False):
     """Clone's and Generate ARKit's step for the character's other objects, after the face
     object got its keys `names`: follow_face with the solved head region of the face object as
     the skin, its motion read back from those keys (world space). target: the operators' target
     (face_object, others(), face.head: the head region's vertex ids); result: the engine's
-    CloneResult (landmarks in the head's numbering). Returns the report's clause: what each
-    object got, or why none did."""
+    CloneResult (landmarks in the head's numbering); still: the other objects keep still (the
+    face's keys are only recorded for Remove ExClone Keys). Returns the report's clause: what
+    each object got, or why none did."""
+    mark(target.face_object, names)
     objects = target.others()
-    if not objects:
+    if not objects or still:
         return ""
     face_obj, head = target.face_object, target.face.head
     world = character.world_mesh(face_obj)

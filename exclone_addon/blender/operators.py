@@ -216,9 +216,9 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
                 deltas[:, workflow.still_parts_mask(head.mesh, result.target_landmarks)] = 0.0
             added, replaced, also_skipped = workflow.write_face_keys(
                 target, [key_names[name] for name in wanted], deltas, self.replace_existing)
-            followed = "" if self.parts == 'STILL' else character_keys.follow_character(
+            followed = character_keys.follow_character(
                 target, [key_names[name] for name in wanted], result,
-                replace_existing=self.replace_existing)
+                replace_existing=self.replace_existing, still=self.parts == 'STILL')
             measured = measures_clause(workflow.measure(face_object.name, head.mesh, result,
                                                         wanted, deltas))
             self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
