@@ -29,6 +29,9 @@ from scripts.exclone_cli import Outputs
 
 SCRIPT = REPO_ROOT / "scripts" / "batch_clone.py"
 DATA = REPO_ROOT / "exclone_addon" / "data"
+FLAMENCO_TARGETS = ["/farm/heads/anna.obj", "/farm/more/anna.obj", "/farm/chars/Bob v2.blend:Head",
+                    "/farm/chars/élodie.glb", "/farm/scan.final.fbx"]
+FLAMENCO_STEMS = ["anna", "anna-2", "Bob_v2_Head", "_lodie", "scan.final"]
 DEMO_HEAD = data.DEMO_HEAD_FILE
 
 
@@ -90,6 +93,7 @@ def inputs(tmp_path, head):
     write_obj(good / "jawOpen.obj", PolyMesh(head.vertices + 0.1, head.loop_totals, head.loop_vertices))
     (folder / "head.stl").write_text("solid head\nendsolid head\n")
     (folder / "no_meshes").mkdir()
+    (folder / "earlier_exclone.blend").write_text("the result of an earlier run\n")
     return folder
 
 
@@ -124,7 +128,15 @@ BAD_INPUTS = {
                                   "refusing to overwrite the input file"),
     "export would overwrite the source": (["--source", "{in}/folder", "--export-dir", "{in}/folder"],
                                           "refusing to overwrite the input file"),
-    "out not a blend": (["--out", "{in}/result.txt"], "--out must name a .blend file"),
+    "out not a blend": (["--out", "{in}/result.txt"], "--out must name a .blend, .glb or .fbx file"),
+    "out exists": (["--target", "{in}/head.obj", "--out", "{in}/earlier_exclone.blend"],
+                   "{in}/earlier_exclone.blend exists; give --overwrite to replace it"),
+    "--overwrite with --resume": (["--overwrite", "--resume"],
+                                  "--overwrite replaces what --resume keeps; give one of them"),
+    "--format with one target": (["--format", "glb"], "--format is for several targets"),
+    "--summary-only without targets": (["--summary-only"], "--summary-only is for several targets"),
+    "unknown --format": (["--target", "{in}/head.obj", "--target", "{in}/keyed.blend",
+                          "--format", "stl"], "argument --format: invalid choice: 'stl'"),
     "--preview with --no-preview": (["--preview", "{in}/p.png", "--no-preview"],
                                     "--preview names the contact sheet that --no-preview skips"),
     "unknown option": (["--colour", "red"], "unrecognized arguments: --colour red"),
@@ -378,6 +390,8 @@ def test_run_with_the_reports_landmarks_shapes_and_export(default_run, tmp_path,
 def test_output_names_are_unique_per_target():
     assert batch_clone.output_stems(["a/head.obj", "b/head.obj", "c/head.blend:Face", "head.fbx"]) == [
         "head", "head-2", "head_Face", "head-3"]
+    # the names blender_tests/core/test_flamenco_job.py expects of flamenco/exclone_batch.js
+    assert batch_clone.output_stems(FLAMENCO_TARGETS) == FLAMENCO_STEMS
 
 
 def test_batch_writes_one_output_per_target_and_skips_a_bad_one(tmp_path, head):
@@ -401,14 +415,15 @@ def test_batch_writes_one_output_per_target_and_skips_a_bad_one(tmp_path, head):
     assert hashes(folder, tmp_path / "scene.blend") == before
 
     out = tmp_path / "results"
+    assert "batch: 3 target(s) to run, 2 at a time (--jobs)" in result.stdout
     assert sorted(p.name for p in out.iterdir()) == [
         "batch_report.json", "head_exclone.blend", "head_exclone.json",
         "scene_face_exclone.blend", "scene_face_exclone.json"]
     summary = json.loads((out / "batch_report.json").read_text())
-    assert (summary["succeeded"], summary["failed"], summary["jobs"]) == (2, 1, 2)
+    assert (summary["done"], summary["failed"], summary["skipped"], summary["jobs"]) == (2, 1, 0, 2)
     assert [entry.get("preview") for entry in summary["targets"]] == [None, None, None]
     status = {Path(entry["target"]).name: entry["status"] for entry in summary["targets"]}
-    assert status == {"broken.obj": "failed", "head.obj": "ok", "scene.blend:face": "ok"}
+    assert status == {"broken.obj": "failed", "head.obj": "done", "scene.blend:face": "done"}
     for name in ("head_exclone.blend", "scene_face_exclone.blend"):
         with bpy.data.libraries.load(str(out / name)) as (src, dst):
             dst.objects = src.objects
@@ -514,3 +529,85 @@ def test_a_failed_export_leaves_no_finished_blend_without_it(tmp_path):
     assert message == f"cannot write {disk}/objs/neutral.obj: No space left on device", message
     assert contents == []       # not even the objs folder the run made
     assert sorted(p.name for p in tmp_path.iterdir()) == ["disk"]
+
+
+# -- big batches: jobs sized by the machine, one summary, resuming an interrupted batch ----------
+
+GIB = 1024 ** 3
+
+
+def test_jobs_are_sized_by_the_cpus_and_the_memory_available():
+    per_job = batch_clone.JOB_BASE_BYTES + batch_clone.JOB_BYTES_PER_VERTEX * 50_000
+    # plenty of memory: every CPU busy, never more jobs than targets
+    assert batch_clone.plan_jobs(None, 50, [4_000, 50_000], 64 * GIB, 8)[0] == 8
+    assert batch_clone.plan_jobs(None, 3, [4_000], 64 * GIB, 8)[0] == 3
+    # memory for three of the largest target's jobs (after the margin left to others)
+    available = 3.5 * per_job / batch_clone.MEMORY_MARGIN
+    jobs, why = batch_clone.plan_jobs(None, 50, [4_000, 50_000], available, 8)
+    assert jobs == 3 and "8 CPUs" in why and "GiB per target" in why
+    # not even one fits: one at a time; unknown memory: the CPUs; --jobs as given
+    assert batch_clone.plan_jobs(None, 50, [50_000], 0.1 * GIB, 8)[0] == 1
+    assert batch_clone.plan_jobs(None, 50, [50_000], None, 8)[0] == 8
+    assert batch_clone.plan_jobs(5, 50, [50_000], 0.1 * GIB, 8) == (5, "--jobs")
+    assert batch_clone.available_memory() > 0
+
+
+def test_a_targets_vertices_are_estimated_without_loading_it(tmp_path, head):
+    assert batch_clone.estimated_vertices(str(DEMO_HEAD)) == len(head.vertices)
+    glb = tmp_path / "head.glb"
+    glb.write_bytes(bytes(32 * 1000))
+    assert batch_clone.estimated_vertices(f"{glb}:Face") == 1000
+    assert batch_clone.estimated_vertices(str(tmp_path / "missing.obj")) == 0
+
+
+def write_moved_heads(folder, head, scales_and_shifts):
+    """Copies of the demo head, scaled and moved (other sizes and places, the same face)."""
+    folder.mkdir(exist_ok=True)
+    for name, (scale, shift) in scales_and_shifts.items():
+        write_obj(folder / f"{name}.obj", PolyMesh(head.vertices * scale + shift, head.loop_totals,
+                                                   head.loop_vertices))
+
+
+def test_an_interrupted_batch_resumes_and_a_broken_target_is_in_the_summary(tmp_path, head):
+    """Two heads done by a first run (as if it was interrupted there); the whole folder, two
+    more heads among them one broken, is refused without --resume (nothing is replaced), then
+    with --resume the done heads are skipped, the new one is done, the broken one failed with
+    its message, and the one summary lists all four."""
+    folder = tmp_path / "heads"
+    write_moved_heads(folder, head, {"a_small": (0.5, [0.0, 0.2, 0.0]),
+                                     "b_large": (3.0, [1.0, 0.0, -2.0])})
+    options = ["--shapes", "jawOpen,eyeBlink_L", "--out-dir", "results", "--no-preview"]
+    first = run_cli("--target", folder, *options, cwd=tmp_path)
+    assert first.returncode == 0, first.stderr
+    out = tmp_path / "results"
+    done_before = hashes(out / "a_small_exclone.blend", out / "b_large_exclone.blend")
+
+    write_moved_heads(folder, head, {"c_far": (1.0, [50.0, 0.0, 0.0])})
+    (folder / "broken.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")   # no faces
+    refused = run_cli("--target", folder, *options, cwd=tmp_path)
+    assert refused.returncode == 1 and not PROGRESS.search(refused.stdout)
+    assert "give --resume to skip the targets that are done, or --overwrite" in refused.stderr
+
+    resumed = run_cli("--target", folder, "--jobs", "2", *options, "--resume", cwd=tmp_path)
+    assert resumed.returncode == 1
+    assert "1 of 4 targets failed (first: " in resumed.stderr and "is empty" in resumed.stderr
+    assert hashes(out / "a_small_exclone.blend", out / "b_large_exclone.blend") == done_before
+    summary = json.loads((out / "batch_report.json").read_text())
+    entries = {Path(entry["target"]).stem: entry for entry in summary["targets"]}
+    assert {name: entry["status"] for name, entry in entries.items()} == {
+        "a_small": "skipped", "b_large": "skipped", "broken": "failed", "c_far": "done"}
+    assert (summary["done"], summary["failed"], summary["skipped"]) == (1, 1, 2)
+    assert "is empty" in entries["broken"]["error"]
+    assert entries["c_far"]["output"] == str(Path("results") / "c_far_exclone.blend")
+    assert entries["c_far"]["shape_keys_added"] == entries["a_small"]["shape_keys_added"] == 2
+    assert entries["c_far"]["seconds"] > 0
+    for line in ("a_small.obj: skipped, done in an earlier run", "c_far.obj: done, 2 shape keys",
+                 "broken.obj: FAILED: target"):
+        assert line in resumed.stdout, resumed.stdout
+
+    # the summary of what is on disk, as a render farm's last task writes it
+    only = run_cli("--target", folder, "--out-dir", "results", "--summary-only", cwd=tmp_path)
+    assert only.returncode == 1 and not PROGRESS.search(only.stdout)
+    summary = json.loads((out / "batch_report.json").read_text())
+    assert [entry["status"] for entry in summary["targets"]] == ["done", "done", "failed", "done"]
+    assert "its task did not finish" in summary["targets"][2]["error"]

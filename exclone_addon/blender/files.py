@@ -199,6 +199,62 @@ def load_target(spec):
     return Target(description, mesh, obj, objects, face)
 
 
+def source_is_plain_files(spec):
+    """True if load_source reads this source without Blender (the bundled library, a folder of
+    OBJs): the command line then need not reset Blender's scene for it."""
+    return spec is None or split_spec(spec)[0].is_dir()
+
+
+# -- writing ------------------------------------------------------------------------------------
+
+RESULT_SUFFIXES = (".blend", ".glb", ".fbx")
+# The first bytes of a whole file of each exported type (a cut-short write lacks them or is empty).
+_MAGIC = {".glb": b"glTF", ".fbx": b"Kaydara FBX Binary"}
+
+
+def save_result(path, objects):
+    """Write the result at `path` by its suffix: a .blend copy of the current file (save_copy),
+    or `objects` exported through Blender's own glTF (.glb) or FBX exporter with their shape
+    keys as morph targets / blend shapes of the same names. OSError with the reason if the file
+    was not written whole."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".blend":
+        save_copy(path, holds=objects[0].name)
+    elif suffix in _MAGIC:
+        export_objects(path, objects)
+    else:
+        raise ExCloneError(f"cannot write {path}: use .blend, .glb or .fbx")
+
+
+def export_objects(path, objects):
+    """objects (with their parents) as a .glb or .fbx at `path`, as they are: no modifier is
+    applied (that would drop the shape keys), no animation; the exporters convert Blender's Z-up
+    to the formats' Y-up, and their importers convert it back."""
+    path = Path(path).resolve()
+    for obj in bpy.context.view_layer.objects:
+        obj.select_set(False)
+    for obj in objects:
+        while obj is not None:
+            obj.select_set(True)
+            obj = obj.parent
+    try:
+        if path.suffix.lower() == ".glb":
+            result = bpy.ops.export_scene.gltf(
+                filepath=str(path), export_format='GLB', use_selection=True, export_apply=False,
+                export_morph=True, export_morph_normal=False, export_animations=False)
+        else:
+            result = bpy.ops.export_scene.fbx(
+                filepath=str(path), use_selection=True, use_mesh_modifiers=False,
+                bake_anim=False, add_leaf_bones=False)
+    except RuntimeError as exc:
+        raise OSError(_first_line(exc, "Blender could not export it")) from exc
+    if result != {'FINISHED'} or not path.is_file():
+        raise OSError("Blender did not export it")
+    with path.open("rb") as handle:
+        if handle.read(len(_MAGIC[path.suffix.lower()])) != _MAGIC[path.suffix.lower()]:
+            raise OSError("the exported file is incomplete; is the disk full?")
+
+
 def save_copy(path, holds):
     """Save the current file's data as a copy at `path` (the session keeps its own file path),
     then read it back: a full disk can leave a truncated file that Blender reports as saved.
