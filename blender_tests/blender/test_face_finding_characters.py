@@ -96,3 +96,17 @@ def test_face_found_on_character(shared_data, name):
         # a body: the head region stops at the neck, above the shoulders and the hands
         low, high = vertices[skin, 2].min(), vertices[skin, 2].max()
         assert (vertices[region, 2].min() - low) / (high - low) > 0.75
+
+
+def test_face_found_on_a_body_turned_anyhow(shared_data):
+    """A whole body in an orientation no axis view sees face-on, in centimetres: the search
+    views follow the body's own axes."""
+    from scipy.spatial.transform import Rotation
+    vertices, triangles, owner, names = _character(shared_data / "characters" / "mh_male_body.blend")
+    rotation = Rotation.from_euler("xyz", [35, -50, 120], degrees=True).as_matrix()
+    turned = 100.0 * vertices @ rotation.T
+    found = face_finding.find_face(turned, triangles)
+    assert _angle(found.forward, rotation @ FORWARD) < ANGLE_TOLERANCE
+    assert _angle(found.up, rotation @ UP) < ANGLE_TOLERANCE
+    hits = np.bincount(owner[found.triangle[found.hits]], minlength=len(names))
+    assert names[int(np.argmax(hits))] == "Body"

@@ -3,10 +3,12 @@
 
 Works for a head or a whole character (its objects' world-space meshes concatenated), in any
 orientation and units:
-1. Search: orthographic renders of the whole mesh along the 6 axis directions and the 8 cube
-   diagonals (a face turned anywhere is within 35 degrees of one of them), each turned by 4 rolls of
-   90 degrees; BlazeFace runs on the whole image and on a close crop of the silhouette's top (on a
-   whole-body view the face is a few dozen pixels: the detector needs it closer).
+1. Search: orthographic renders of the whole mesh along its 3 principal axes both ways and the
+   8 diagonals between them (a face turned anywhere is within 55 degrees of one of the 14; the
+   axes first: most characters face along one), image up along the longest axis, each turned by
+   4 rolls of 90 degrees; BlazeFace runs on the whole image and on a close crop of the
+   silhouette's top (on a whole-body view the face is a few dozen pixels: the detector needs it
+   closer). A body's longest axis is its height, so one roll has its head at the top.
 2. Check and refine the best detections: FaceMesh on the view, its points back onto the surface
    through the render's triangle-id buffer, a frame from them (the rotation that lays MediaPipe's
    canonical face onto them), then a close render straight at the face along that frame, detected
@@ -25,11 +27,11 @@ from scipy.spatial.transform import Rotation
 from . import data, face_models
 from .errors import ExCloneError
 from .face_render import Camera, Render, render
-from .mesh import PolyMesh, vertex_normals, vertex_parts, welded
+from .mesh import PolyMesh, triangle_areas, vertex_normals, vertex_parts, welded
 
 RENDER_SIZE = 512
-# Whole-mesh views: the 6 axis directions first (most characters come axis-aligned), then the
-# 8 cube diagonals.
+# Whole-mesh views, as coefficients of the mesh's principal axes (longest first): the 6 axis
+# directions first, then the 8 diagonals.
 SEARCH_DIRECTIONS = (np.vstack([np.eye(3), -np.eye(3)]),
                      np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T / np.sqrt(3.0))
 # Share of the silhouette's height taken as the close crop of its top: a standing body's head
@@ -123,8 +125,9 @@ def find_face(vertices, triangles):
         raise ExCloneError("the mesh has no triangles or non-finite vertices; " + NOT_FOUND)
     normals = _shading_normals(vertices, triangles)
     models = _Models()
+    axes = _principal_axes(vertices, triangles)
     for directions in SEARCH_DIRECTIONS:
-        candidates = _search(vertices, triangles, normals, models, directions)
+        candidates = _search(vertices, triangles, normals, models, directions @ axes, axes[0])
         for candidate in sorted(candidates, key=lambda c: -c.score)[:CANDIDATES]:
             # the checks on the close render are strict: the first candidate passing them is it
             found = _refined(vertices, triangles, normals, models, candidate)
@@ -140,9 +143,23 @@ def _shading_normals(vertices, triangles):
     return vertex_normals(joined.vertices, index[triangles])[index]
 
 
-def _whole_view(vertices, direction):
-    """A camera that sees the whole mesh from `direction`."""
-    up = np.eye(3)[np.argmin(np.abs(direction))]
+def _principal_axes(vertices, triangles):
+    """(3, 3) rows: the surface's principal axes, longest first (area-weighted triangle centres,
+    so a densely meshed face does not pull them)."""
+    centres = vertices[triangles].mean(axis=1)
+    area = triangle_areas(vertices, triangles)
+    weights = area / area.sum() if area.sum() > 0 else np.full(len(area), 1.0 / len(area))
+    spread = centres - weights @ centres
+    _, vectors = np.linalg.eigh((spread * weights[:, None]).T @ spread)
+    return vectors[:, ::-1].T
+
+
+def _whole_view(vertices, direction, longest):
+    """A camera that sees the whole mesh from `direction`, image up along the `longest` axis
+    (or, looking along it, along another)."""
+    up = longest - direction * np.dot(longest, direction)
+    if np.linalg.norm(up) < 1e-6:
+        up = np.cross(direction, np.eye(3)[np.argmin(np.abs(direction))])
     probe = Camera.looking(np.zeros(3), direction, up, 1.0, RENDER_SIZE)
     local = vertices @ probe.axes[:2].T
     low, high = local.min(axis=0), local.max(axis=0)
@@ -151,11 +168,11 @@ def _whole_view(vertices, direction):
     return Camera.looking(centre, direction, up, max(width, 1e-12), RENDER_SIZE)
 
 
-def _search(vertices, triangles, normals, models, directions):
+def _search(vertices, triangles, normals, models, directions, longest):
     """Every detection in the views from these directions, in every roll and crop."""
     candidates = []
     for direction in directions:
-        view = render(vertices, triangles, _whole_view(vertices, direction), normals)
+        view = render(vertices, triangles, _whole_view(vertices, direction, longest), normals)
         for roll in range(4):
             image = _turned(view.image, roll)
             for crop_image, offset in _crops(image):
