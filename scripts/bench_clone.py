@@ -22,9 +22,10 @@ into another. Cases:
   reader; faces of every file) and by core.library.load_obj_folder, side by side;
 - character_body, character_head_dense: a shared MakeHuman character (../shared/data/characters:
   the full-body mh_male_body.blend, 7 objects; the 67k-vertex mh_head_dense.blend) from the file
-  to the ARKit keys on all its objects: every object appended into an empty scene, then the Generate
-  ARKit Shapes operator made active on an object that is not the face's (the face found by
-  rendering, the head solved, the other objects' keys written); CPU and wall seconds, peak RSS;
+  to the ARKit keys on all its objects: every object appended into an empty scene and selected,
+  the first mesh by name active (an eyeball: not the face's object), then the Generate ARKit
+  Shapes operator (the face found by rendering, the head solved, the other objects' keys
+  written); CPU and wall seconds, peak RSS;
 - target_50k: the face region's 57 expressions onto the demo head made 50,000 vertices
   (head_of_size: midpoint subdivision while it stays under the size, then `densified`), landmarks
   to keys in one cold clone: wall seconds per phase, CPU seconds of the fit and of the transfer,
@@ -439,6 +440,8 @@ def run_character_case(name):
         bpy.context.scene.collection.objects.link(obj)
     bpy.context.view_layer.update()
     meshes = sorted((o for o in loaded.objects if o.type == 'MESH'), key=lambda o: o.name)
+    for obj in meshes:                  # the character: its hierarchy, or the selection
+        obj.select_set(True)
     bpy.context.view_layer.objects.active = meshes[0]     # any object of the character
     finished = bpy.ops.exclone.generate_arkit_shapes()
     seconds = {"wall": round(time.perf_counter() - wall, 2),

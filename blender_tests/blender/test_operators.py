@@ -159,6 +159,11 @@ def test_panel_draws_without_and_with_a_selection(head):
     settings.preset = 'fast'
     log = draw_panel()
     assert ("label", "Active: head") in log
+    assert ("label", "Character: 'head' (1 mesh)") in log
+    eye = add_object("eye", head, active=False)
+    eye.parent = bpy.data.objects["head"]
+    assert ("label", "Character: 2 meshes (the face is found among them)") in draw_panel()
+    bpy.data.objects.remove(eye)
     assert ("prop", "source") not in log  # the library needs no source object
     for name in ("preset", "formulation", "parts", "prefix", "replace_existing"):
         assert ("prop", name) in log

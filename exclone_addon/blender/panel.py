@@ -1,6 +1,8 @@
 """The "ExClone" tab of the 3D viewport's sidebar (N panel)."""
 import bpy
 
+from ..core.errors import ExCloneError
+from . import character
 from . import landmarks as stored_landmarks
 from . import workflow
 
@@ -51,7 +53,20 @@ def _draw_source_and_target(layout, context, settings):
     if settings.target is None:
         column.label(text=f"Active: {target.name}" if target is not None else "Active: nothing",
                      icon='INFO')
+    if target is not None:
+        column.label(text=_character_text(target, context.selected_objects), icon='OUTLINER')
     return target
+
+
+def _character_text(target, selected):
+    """Which meshes make the character the face is looked for on (the operators' rule)."""
+    try:
+        meshes = character.character_objects(target, selected)
+    except ExCloneError:
+        return "Character: no mesh"
+    if len(meshes) == 1:
+        return f"Character: '{meshes[0].name}' (1 mesh)"
+    return f"Character: {len(meshes)} meshes (the face is found among them)"
 
 
 def _draw_landmarks(layout, target):
