@@ -6,7 +6,11 @@
 - the astronaut photograph (skimage, public domain) moved by known 2D motions.
 """
 import functools
+import hashlib
+import sys
+import tempfile
 import time
+from pathlib import Path
 from types import SimpleNamespace
 
 import cv2
@@ -15,10 +19,16 @@ from scipy.spatial.transform import Rotation
 from skimage import data as skimage_data
 
 from exclone_addon.core import data
-from exclone_addon.core.library import load_library
-from exclone_addon.core.tracker_model import locate_tracker_landmarks
+from exclone_addon.core.library import ARKIT_SPLIT, load_library
+from exclone_addon.core.retarget import AvatarRig
+from exclone_addon.core.session import FaceTrackingSession
+from exclone_addon.core.tracker_model import locate_tracker_landmarks, read_tracker_locations
 from exclone_addon.core.tracking import (FRONTAL, Camera, ShapeFitter, calibrate_neutral,
                                          expression_shape_model)
+
+from blender_tests.helpers.paths import REPO_ROOT, SHARED_DATA
+
+sys.path.insert(0, str(REPO_ROOT / "scripts"))   # render_faces (rendered takes only)
 
 FRAMES = 200
 CALIBRATION_FRAMES = 30      # a neutral face, the head turning (one second at 30 fps)
@@ -129,3 +139,185 @@ def astronaut_motion(k):
 def astronaut_frame(k):
     return cv2.warpAffine(astronaut(), astronaut_motion(k), (640, 480), flags=cv2.INTER_LINEAR,
                           borderMode=cv2.BORDER_REPLICATE)
+
+
+# -- rendered takes: faces rendered in background Blender, tracked through the image models -------
+
+# The shapes a rendered take drives (ARKit units; a unit ICT splits in halves drives both), the
+# eyes left to the eye tests.
+DRIVEN = ("jawOpen", "mouthSmile_L", "mouthSmile_R", "mouthFrown_L", "mouthFrown_R", "mouthPucker",
+          "mouthFunnel", "cheekPuff", "browInnerUp", "browDown_L", "browDown_R", "browOuterUp_L",
+          "browOuterUp_R", "noseSneer_L", "noseSneer_R", "mouthStretch_L", "mouthStretch_R")
+RENDER_DISTANCE_CM = 50.0      # the head's centre from the camera: a face about 200 px wide
+BUMP_FRAMES = 20               # each shape rises and falls over this many frames
+BUMP_SPACING = 10              # a new shape starts every this many frames (two overlap)
+RENDER_CACHE = Path(tempfile.gettempdir()) / "exclone_rendered_takes"
+RENDER_VERSION = 1             # bump when the renderer or a take's recipe changes
+
+
+def unit_keys(names, unit):
+    """The library keys an ARKit unit drives: itself, or its two ICT halves."""
+    halves = ARKIT_SPLIT.get(unit, (unit,))
+    return [names.index(name) for name in halves]
+
+
+def take_recipe(kind, frames=None, seed=3):
+    """(weights of each DRIVEN unit (T, U), head turn in camera axes as yxz Euler degrees (T, 3)).
+
+    kind: "moving" (the units in overlapping bumps, the head turning up to 25 deg about one axis),
+    "still" (the same bumps, the head still) or "turning" (a neutral face turning up to 30 deg).
+    The first CALIBRATION_FRAMES hold a neutral face turning a little (what calibration reads).
+    """
+    rng = np.random.default_rng(seed)
+    count = CALIBRATION_FRAMES + BUMP_SPACING * len(DRIVEN) + BUMP_FRAMES
+    frames = frames or count
+    t = np.arange(frames) / FPS
+    weights = np.zeros((frames, len(DRIVEN)))
+    if kind != "turning":
+        bump = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(BUMP_FRAMES) / (BUMP_FRAMES - 1))
+        for u in range(len(DRIVEN)):
+            start = CALIBRATION_FRAMES + BUMP_SPACING * u
+            stop = min(start + BUMP_FRAMES, frames)
+            if start < frames:
+                weights[start:stop, u] = rng.uniform(0.6, 1.0) * bump[:stop - start]
+    if kind == "still":
+        angles = np.zeros((frames, 3))
+    else:
+        size = 30.0 if kind == "turning" else 25.0
+        angles = np.column_stack((size * np.sin(2 * np.pi * 0.23 * t),
+                                  0.7 * size * np.sin(2 * np.pi * 0.17 * t + 1),
+                                  0.4 * size * np.sin(2 * np.pi * 0.13 * t + 2)))
+    c = t[:CALIBRATION_FRAMES]
+    angles[:CALIBRATION_FRAMES] = np.column_stack((10 * np.sin(2 * np.pi * c), 6 * np.sin(4 * np.pi * c),
+                                                   0 * c))
+    return weights, angles
+
+
+def identity_head(identity):
+    """(neutral vertices, expression deltas, names, parts) of an ICT-topology head: the bundled
+    library (identity None) or the ICT identity model's face for a seed (weights N(0, 1) on its
+    30 modes, as ICT-FaceKit's randomize_identity), wearing the library's expressions."""
+    library = load_library()
+    vertices = library.mesh.vertices
+    if identity is not None:
+        with np.load(SHARED_DATA / "ict-facekit" / "identities.npz") as stored:
+            modes = stored["deltas"].astype(np.float64)
+        coefficients = np.random.default_rng(identity).standard_normal(len(modes))
+        vertices = vertices + np.tensordot(coefficients, modes, axes=1)
+    return vertices, library.deltas, list(library.names), library.parts
+
+
+def _take_key(kind, identity, frames, seed):
+    text = f"v{RENDER_VERSION}-{kind}-{identity}-{frames}-{seed}-{IMAGE_SIZE}-{RENDER_DISTANCE_CM}"
+    return hashlib.sha1(text.encode()).hexdigest()[:16]
+
+
+def rendered_take(kind="moving", identity=None, frames=None, seed=3):
+    """A take rendered in background Blender (needs bpy), cached on disk by its parameters:
+    frames (list of PNG paths), truth (library-key weights (T, E)), unit weights (T, U), the
+    head's model -> camera rotations, translations, the camera and render seconds per frame
+    (CPU time, 0 when read from the cache)."""
+    weights, angles = take_recipe(kind, frames, seed)
+    vertices, deltas, names, parts = identity_head(identity)
+    truth = np.zeros((len(weights), len(names)))
+    for u, unit in enumerate(DRIVEN):
+        truth[:, unit_keys(names, unit)] = weights[:, u:u + 1]
+    rotations = Rotation.from_euler("yxz", angles, degrees=True) * FRONTAL
+    locations = read_tracker_locations()
+    centre = locations.sample(vertices).mean(axis=0)
+    translation = np.array([0.0, 0.0, RENDER_DISTANCE_CM])
+    folder = RENDER_CACHE / _take_key(kind, identity, len(weights), seed)
+    paths = [folder / f"frame_{k:04d}.png" for k in range(len(weights))]
+    seconds = 0.0
+    if not all(p.is_file() for p in paths):
+        seconds = _render_take(folder, paths, vertices, deltas, parts, truth, rotations,
+                               translation, centre, locations)
+    return SimpleNamespace(frames=paths, truth=truth, unit_weights=weights, names=names,
+                           rotations=rotations, translation=translation, kind=kind,
+                           camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds,
+                           vertices=vertices, deltas=deltas)
+
+
+def _render_take(folder, paths, vertices, deltas, parts, truth, rotations, translation, centre,
+                 locations):
+    """Renders every frame into `folder`; returns the CPU seconds per frame."""
+    import render_faces      # needs bpy: imported only when a take is rendered
+    folder.mkdir(parents=True, exist_ok=True)
+    colours = render_faces.vertex_colours(vertices, parts, locations.sample(vertices))
+    renderer = render_faces.FaceRenderer(
+        render_faces.rendered_triangles(load_library().mesh.triangles(), parts), colours, IMAGE_SIZE)
+    start = time.process_time()
+    for k, path in enumerate(paths):
+        posed = vertices + np.tensordot(truth[k], deltas, axes=1)
+        renderer.render(rotations[k].apply(posed - centre) + translation, path)
+    return (time.process_time() - start) / len(paths)
+
+
+def ict_avatar(take):
+    """The take's own head as the avatar (the ideal answer is the truth): its library keys
+    sampled where the tracker's points lie on it (the shipped locations: same topology)."""
+    return AvatarRig.from_locations(take.vertices, take.deltas, take.names, read_tracker_locations())
+
+
+def track_rendered(take, avatar=None, tracker_model=None):
+    """The take's frames through FaceTrackingSession.step (what a camera feeds): weights by
+    library key (T, E; NaN before calibration or without a face), model -> camera rotations
+    (None without a face), and the step's milliseconds."""
+    session = FaceTrackingSession(avatar=avatar if avatar is not None else ict_avatar(take),
+                                  camera=take.camera, calibration_frames=CALIBRATION_FRAMES,
+                                  tracker_model=tracker_model)
+    weights = np.full(take.truth.shape, np.nan)
+    rotations, step_ms = [], []
+    index = {name: j for j, name in enumerate(take.names)}
+    for k, path in enumerate(take.frames):
+        start = time.perf_counter()
+        result = session.step(cv2.imread(str(path)), k / FPS)
+        step_ms.append(1000 * (time.perf_counter() - start))
+        rotations.append(result.rotation if result.found else None)
+        if result.found and result.weights is not None:
+            for name, value in result.weights.items():
+                if name in index:
+                    weights[k, index[name]] = value
+    return SimpleNamespace(weights=weights, rotations=rotations, step_ms=np.array(step_ms),
+                           session=session)
+
+
+def unit_scores(take, tracked):
+    """Per DRIVEN unit over the frames after calibration: (correlation, mean absolute error);
+    a split unit's estimate is the mean of its halves."""
+    frames = slice(CALIBRATION_FRAMES, None)
+    scores = {}
+    for u, unit in enumerate(DRIVEN):
+        keys = unit_keys(take.names, unit)
+        estimate = tracked.weights[frames][:, keys].mean(axis=1)
+        truth = take.unit_weights[frames, u]
+        scores[unit] = (float(np.corrcoef(estimate, truth)[0, 1]),
+                        float(np.abs(estimate - truth).mean()))
+    return scores
+
+
+def largest_false_weight(take, tracked):
+    """The largest weight of any key after calibration on a take whose face stays neutral, and
+    its key's name."""
+    weights = tracked.weights[CALIBRATION_FRAMES:]
+    k, j = np.unravel_index(np.nanargmax(weights), weights.shape)
+    return float(weights[k, j]), take.names[j]
+
+
+def pose_errors(take, tracked):
+    """Head-rotation errors after calibration: (per-frame error in degrees (T,), per-axis slope
+    of the estimated against the true turn (x pitch, y yaw, z roll, camera axes)).
+
+    The tracker's model frame differs from the head's by a constant rotation: the one that best
+    aligns the estimates to the truth (their mean difference) is taken out first."""
+    ks = [k for k in range(CALIBRATION_FRAMES, len(take.frames)) if tracked.rotations[k] is not None]
+    estimated = Rotation.concatenate([tracked.rotations[k] for k in ks])
+    true = take.rotations[ks]
+    offset = (true.inv() * estimated).mean()
+    turn_est = estimated * offset.inv() * FRONTAL.inv()
+    turn_true = true * FRONTAL.inv()
+    errors = np.degrees((turn_est * turn_true.inv()).magnitude())
+    a, b = turn_true.as_rotvec(), turn_est.as_rotvec()
+    slopes = np.array([np.polyfit(a[:, i], b[:, i], 1)[0] if np.ptp(a[:, i]) > 0.02 else np.nan
+                       for i in range(3)])     # an axis the head does not turn about: NaN
+    return errors, slopes
