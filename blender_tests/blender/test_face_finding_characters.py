@@ -7,6 +7,7 @@ import pytest
 import bpy
 
 from exclone_addon.core import face_finding
+from exclone_addon.core.errors import ExCloneError
 
 FILES = ("mh_male_body.blend", "mh_male_body.glb", "mh_female_old_body.fbx", "mh_head_lowpoly.glb",
          "mh_head_dense.blend", "mh_stylised_head.blend", "mh_child_body_expr.blend")
@@ -110,3 +111,12 @@ def test_face_found_on_a_body_turned_anyhow(shared_data):
     assert _angle(found.up, rotation @ UP) < ANGLE_TOLERANCE
     hits = np.bincount(owner[found.triangle[found.hits]], minlength=len(names))
     assert names[int(np.argmax(hits))] == "Body"
+
+
+def test_no_face_on_a_headless_body(shared_data):
+    """A body without its head (the triangles above the neck left out) has no face: refused with
+    a message that says what to do, never a face found on a hand or a chest."""
+    vertices, triangles, _, _ = _character(shared_data / "characters" / "mh_male_body.blend")
+    below_neck = np.all(vertices[triangles][:, :, 2] < 1.55, axis=1)    # the chin is at ~1.63 m
+    with pytest.raises(ExCloneError, match="select the head object"):
+        face_finding.find_face(vertices, triangles[below_neck])
