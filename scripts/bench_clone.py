@@ -23,7 +23,7 @@ into another. Cases:
 - character_body, character_head_dense: a shared MakeHuman character (../shared/data/characters:
   the full-body mh_male_body.blend, 7 objects; the 67k-vertex mh_head_dense.blend) from the file
   to the ARKit keys on all its objects: every object appended into an empty scene and selected,
-  the first mesh by name active (an eyeball: not the face's object), then the Generate ARKit
+  the first mesh by name active (the body; the dense head's Eye_L), then the Generate ARKit
   Shapes operator (the face found by rendering, the head solved, the other objects' keys
   written); CPU and wall seconds, peak RSS;
 - target_50k: the face region's 57 expressions onto the demo head made 50,000 vertices
