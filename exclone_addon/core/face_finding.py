@@ -81,7 +81,8 @@ class FoundFace:
     up: np.ndarray
     forward: np.ndarray
     eye_distance: float    # between the eye centres (mid-corners), on the surface
-    face_height: float     # forehead (10) to chin (152), on the surface
+    face_height: float     # forehead (10) to chin (152) on the surface (if either missed: the
+                           # canonical face's, scaled to the points)
     presence: float        # FaceMesh's face presence on the final close render
     detection: float       # BlazeFace's score on the final close render
     search_score: float    # BlazeFace's score on the search view that led here
@@ -97,7 +98,8 @@ class FoundFace:
 
     def landmarks(self):
         """{project landmark name: (3,) point} for the FACEMESH_LANDMARKS points that hit."""
-        return {name: self.points[i] for name, i in FACEMESH_LANDMARKS.items() if self.triangle[i] >= 0}
+        return {name: self.points[i] for name, i in FACEMESH_LANDMARKS.items()
+                if self.triangle[i] >= 0}
 
 
 @dataclass(frozen=True)
@@ -261,7 +263,7 @@ def _refined(vertices, triangles, normals, models, candidate):
     fitted = _frame(points, models.canonical)
     if fitted is None or presence < MIN_PRESENCE or detection_score < MIN_REDETECTION:
         return None
-    return _found(points, ids, fitted[0], presence, detection_score, candidate.score)
+    return _found(points, ids, fitted, presence, detection_score, candidate.score)
 
 
 def _close_roi(view, models, points):
@@ -276,12 +278,15 @@ def _close_roi(view, models, points):
     return face_models.roi_from_landmarks(projected[:, :2]), 0.0
 
 
-def _found(points, ids, rotation, presence, detection_score, search_score):
+def _found(points, ids, fitted, presence, detection_score, search_score):
     def mid(pair):
-        return np.mean(points[list(pair)], axis=0)
+        return np.nanmean(points[list(pair)], axis=0)
 
+    rotation, fitted_height = fitted
     eye_distance = float(np.linalg.norm(mid(EYE_CORNERS_LEFT) - mid(EYE_CORNERS_RIGHT)))
     face_height = float(np.linalg.norm(points[FOREHEAD] - points[CHIN]))
+    if not np.isfinite(face_height):
+        face_height = fitted_height
     return FoundFace(points=points, triangle=ids, right=rotation[:, 0], up=rotation[:, 1],
                      forward=rotation[:, 2], eye_distance=eye_distance, face_height=face_height,
                      presence=presence, detection=detection_score, search_score=search_score)
@@ -290,16 +295,18 @@ def _found(points, ids, rotation, presence, detection_score, search_score):
 def head_region(vertices, triangles, found):
     """(n,) bool: the head, for a solve that must leave the rest of a character still.
 
-    The connected part(s) holding most of the face's hits (eyes, teeth and lashes hold only a
-    few and are left out), cut by a plane HEAD_CUT_BELOW_CHIN face heights below the chin point,
-    perpendicular to the face's up axis; of what lies above the cut, the piece(s) holding the
-    hits (a raised hand above the cut is not head)."""
+    The mesh (welded at split seams) is cut by a plane HEAD_CUT_BELOW_CHIN face heights below
+    the chin (the face's lowest FaceMesh point, 152), perpendicular to the face's up axis; of
+    the connected pieces above the cut, those holding at least MIN_PART_SHARE of the best
+    piece's hits: the skin (eyes, teeth and lashes hold a few hits and are left out; a raised
+    hand above the cut holds none). `found` must index these triangles."""
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64)
     joined, index = welded(PolyMesh.from_faces(vertices, triangles))
     joined_triangles = index[triangles]
     hit_vertices = np.unique(index[triangles[found.triangle[found.hits]]].ravel())
-    above = (vertices - found.points[CHIN]) @ found.up >= -HEAD_CUT_BELOW_CHIN * found.face_height
+    chin = np.nanmin(found.points @ found.up)         # point 152, or the lowest that hit
+    above = vertices @ found.up - chin >= -HEAD_CUT_BELOW_CHIN * found.face_height
     above_joined = np.zeros(len(joined.vertices), dtype=bool)
     above_joined[index[above]] = True
     kept = joined_triangles[np.all(above_joined[joined_triangles], axis=1)]
@@ -311,8 +318,9 @@ def head_region(vertices, triangles, found):
 
 
 # Below the chin point, in face heights (forehead 10 to chin 152): the head region keeps the
-# under-chin and the upper neck, which jawOpen and the mouth shapes move, and stops well above
-# the shoulders and clavicles (the chin is ~0.6 face heights above the sternal notch).
+# under-chin and the upper neck, which jawOpen and the mouth shapes move (below it the library's
+# jawOpen moves at most 5% of its peak), and stops where the shoulders start on the shared
+# bodies (0.25-0.3 face heights below the chin; docs/method.md §4).
 HEAD_CUT_BELOW_CHIN = 0.3
 # A piece is part of the head when it holds at least this share of the best piece's hit
 # vertices: the skin holds hundreds, an eyeball or the lashes a few dozen.
