@@ -104,3 +104,29 @@ def test_an_avatar_without_arkit_eye_keys_gets_no_eye_rows():
     assert targets.rows(NEUTRAL) == (None, None)
     weights, _ = solve_eyes_only(NEUTRAL, NEUTRAL, names=["eyeBlink_L", "jawOpen"])
     assert weights["eyeBlink_L"] < 1e-6
+
+
+@pytest.mark.parametrize("turn", [(0, 0, 0), (30, 0, 0), (0, 20, 0), (-25, 15, 10)])
+def test_geometry_brings_a_turned_heads_reading_back_to_frontal(turn):
+    """Eyes with known lids and gaze seen on a head turned by `turn` (yxz degrees): the reading
+    differs from the frontal one (the iris is in front of the corners), frontal() recovers it."""
+    from scipy.spatial.transform import Rotation
+    from exclone_addon.core import data
+    from exclone_addon.core.tracking import FRONTAL, Camera
+    shape = data.canonical_face().vertices
+    geometry = eyes.EyeGeometry(shape, Camera.from_image_size(640, 480))
+    rotation = Rotation.from_euler("yxz", turn, degrees=True) * FRONTAL
+    translation = np.array([0.0, 0.0, 50.0]) - rotation.apply(shape.mean(axis=0))
+    centres = np.array([[0.02, 0.01], [-0.02, 0.01]])
+    gaze = np.array([0.08, -0.05])          # the iris's frontal shift, eye widths
+    r = eyes.EYE_RADIUS_WIDTHS
+    depth = eyes.IRIS_DEPTH_WIDTHS - r + r * np.sqrt(1.0 - (gaze ** 2).sum() / r ** 2)
+    seen = np.array([geometry._reading_of(k, geometry._points(0.2, -0.1, [*(centres[k] + gaze), depth]),
+                                          rotation, translation) for k in range(2)])
+    reading = eyes.EyeReading(seen[:, 0], seen[:, 1], seen[:, 2:])
+    frontal = geometry.frontal(reading, rotation, translation, centres)
+    np.testing.assert_allclose(frontal.upper, 0.2, atol=1e-6)
+    np.testing.assert_allclose(frontal.lower, -0.1, atol=1e-6)
+    np.testing.assert_allclose(frontal.iris - centres, [gaze, gaze], atol=1e-6)
+    if turn[0]:
+        assert np.abs(reading.iris - centres - gaze).max() > 0.03

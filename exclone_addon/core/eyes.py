@@ -34,6 +34,11 @@ SIDES = ("_R", "_L")
 # The iris centre's distance from the eyeball's centre of rotation in eye widths (corner to
 # corner): about 10 mm over 29 mm in an adult eye.
 EYE_RADIUS_WIDTHS = 0.35
+# How far the iris centre (looking ahead) and the lids' middles are in front of the corners'
+# midpoint, in eye widths: about 3 mm (the corners are set back, the outer one most), so the
+# centre of rotation is 0.25 widths behind the corners. Measured: a head turned by 30 degrees
+# shifts the iris by about 0.06 widths against the corners (rendered ICT head, iris model).
+IRIS_DEPTH_WIDTHS = 0.1
 # The eye turn an ARKit eyeLook weight of 1 stands for.
 EYE_LOOK_FULL_DEG = 30.0
 # What each ARKit eye key at 1 does to the lids as the iris model reads them: (key, change of the
@@ -90,6 +95,89 @@ def read_eyes(eyes):
                                                contour[list(UPPER_LID)], contour[list(LOWER_LID)],
                                                centre)
     return EyeReading(upper, lower, iris)
+
+
+# FaceMesh's corners of each eye in the reading's order (image-left corner, image-right corner).
+FACEMESH_CORNERS = ((33, 133), (362, 263))
+GEOMETRY_ITERATIONS = 3
+
+
+class EyeGeometry:
+    """The actor's eyes in the head's frame, so that a reading of a turned head can be brought
+    to what the eyes would show facing the camera (frontal): each eye is a frame on its two
+    corners' midpoint (the head's axes, x the subject's left, y up, z forward, in units of the
+    corner distance; the corners as they are, the outer one further back; docs/method.md §10),
+    whose lids' middles and iris centre (looking ahead) sit IRIS_DEPTH_WIDTHS in front of the
+    corners' midpoint, the iris turning on a sphere of radius EYE_RADIUS_WIDTHS. Uncorrected, a
+    head turning shifts the iris against the corners (it is in front of them) and widens or
+    narrows the lids' opening against the eye's width.
+
+    neutral_shape: (468, 3) the actor's calibrated neutral (model space: +Y up, +Z forward);
+    camera: core.tracking.Camera of the take.
+    """
+
+    def __init__(self, neutral_shape, camera):
+        shape = np.asarray(neutral_shape, dtype=np.float64)
+        self.camera = camera
+        self._frames = []
+        for left, right in FACEMESH_CORNERS:
+            corners = shape[[left, right]]
+            origin = corners.mean(axis=0)
+            width = float(np.linalg.norm(corners[1] - corners[0]))
+            self._frames.append((origin, width, (corners - origin) / width))
+
+    def _reading_of(self, k, points, rotation, translation):
+        """One eye's (upper, lower, iris x, iris y) as read_eyes would read the eye's corners and
+        the eye-frame points (upper lid, lower lid, iris) (3, 3) seen in this pose."""
+        origin, width, corners = self._frames[k]
+        points = np.vstack((corners, points))
+        camera_points = rotation.apply(origin + width * points) + translation
+        image = self.camera.project(camera_points) * np.array([1.0, -1.0])     # y up
+        upper, lower, iris = _measure(image[0], image[1], image[2:3], image[3:4], image[4])
+        return np.array([upper, lower, *iris])
+
+    @staticmethod
+    def _points(upper, lower, iris):
+        """The lids' middles and the iris centre (3, 3) in eye units."""
+        return np.array([[0.0, upper, IRIS_DEPTH_WIDTHS], [0.0, lower, IRIS_DEPTH_WIDTHS], iris])
+
+    def frontal(self, reading, rotation, translation, centres=None):
+        """The EyeReading this pose's reading would be facing the camera: lid heights and the
+        iris's frontal position in eye widths. centres (2, 2): each iris's centre of rotation
+        (x, y; the calibrated neutral's iris); None while calibrating: the eyes are taken to
+        look ahead and the centres are what is solved for."""
+        upper, lower, iris = np.zeros(2), np.zeros(2), np.zeros((2, 2))
+        r = EYE_RADIUS_WIDTHS
+        for k in range(2):
+            measured = np.array([reading.upper[k], reading.lower[k], *reading.iris[k]])
+            if centres is None:       # unknowns: lids and the centre (eyes ahead)
+                def points(p):
+                    return self._points(p[0], p[1], [p[2], p[3], IRIS_DEPTH_WIDTHS])
+            else:                     # unknowns: lids and the iris's frontal offset
+                def points(p, c=centres[k]):
+                    x, y = np.clip(p[2:] / r, -0.95, 0.95)
+                    depth = IRIS_DEPTH_WIDTHS - r + r * np.sqrt(max(1.0 - x * x - y * y, 0.05))
+                    return self._points(p[0], p[1], [c[0] + p[2], c[1] + p[3], depth])
+            start = measured.copy() if centres is None else np.concatenate(
+                (measured[:2], measured[2:] - centres[k]))
+            p = _newton(lambda q: self._reading_of(k, points(q), rotation, translation) - measured,
+                        start)
+            upper[k], lower[k] = p[0], p[1]
+            iris[k] = p[2:] if centres is None else centres[k] + p[2:]
+        return EyeReading(upper, lower, iris)
+
+
+def _newton(residual, start, step=1e-4):
+    """A few Newton steps on a square residual with a forward-difference Jacobian."""
+    p = np.asarray(start, dtype=np.float64).copy()
+    for _ in range(GEOMETRY_ITERATIONS):
+        r = residual(p)
+        jacobian = np.column_stack([(residual(p + step * e) - r) / step for e in np.eye(len(p))])
+        try:
+            p = p - np.linalg.solve(jacobian, r)
+        except np.linalg.LinAlgError:
+            break
+    return p
 
 
 def neutral_reading(readings):

@@ -17,6 +17,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import data, eyes, face_models
+from .eyes import EyeGeometry
 from .errors import ExCloneError
 from .retarget import WeightSolver, map_blendshapes, refine_take
 from .tracker_model import load_tracker_model
@@ -126,7 +127,8 @@ class FaceTrackingSession:
         self.neutral = None           # (468, 3) the actor's calibrated neutral (model space)
         self.neutral_rotation = None  # mean head pose over the calibration frames
         self.solver = None
-        self.eye_neutral = None       # the actor's neutral eyes (eyes.EyeReading)
+        self.eye_neutral = None       # the actor's neutral eyes, frontal (eyes.EyeReading)
+        self._eye_geometry = None
         self._eye_targets = None
         self.take = RecordedTake()
         self._frame_size = None       # (width, height) of the take's first frame
@@ -298,6 +300,9 @@ class FaceTrackingSession:
         reading = eyes.read_eyes(eye_points) if eye_points is not None else None
         if self._pending:
             fit = self._calibration_frame(points, reading, fit, stage_ms)
+        elif reading is not None and self.eye_neutral is not None:
+            reading = self._eye_geometry.frontal(reading, fit.rotation, fit.translation,
+                                                 self.eye_neutral.iris)
         pose = self._shown_pose(fit, points, timestamp)
         head_rotation = weights = None
         if self.calibrated:
@@ -321,8 +326,7 @@ class FaceTrackingSession:
         """Collects a calibration frame (its points and eye reading); on the last one
         calibrates. Returns the frame's fit (refitted by the calibration when it ran)."""
         self._calibration_points.append(points[:, :2].copy())
-        if reading is not None:
-            self._calibration_eyes.append(reading)
+        self._calibration_eyes.append(reading)
         if len(self._calibration_points) < self._pending:
             return fit
         start = time.perf_counter()
@@ -339,12 +343,12 @@ class FaceTrackingSession:
                      self._filters["landmarks"](points, timestamp))
 
     def _weights(self, params, reading, timestamp, stage_ms):
-        """The avatar's shape-key weights for these shape parameters and the eyes' reading (the
-        eyes' rows join the solve when both the reading and the eyes' neutral exist); the frame
-        is recorded."""
+        """The avatar's shape-key weights for these shape parameters and the eyes' frontal
+        reading (the eyes' rows join the solve when both the reading and the eyes' neutral
+        exist; after the calibration frame itself); the frame is recorded."""
         start = time.perf_counter()
         displacement = self._fitter.model.shape(params) - self.neutral
-        if reading is not None and self._eye_targets is not None:
+        if reading is not None and self._eye_targets is not None and not self._pending:
             values = self.solver.solve(displacement, *self._eye_targets.rows(reading))
         else:
             values = self.solver.solve(displacement)
@@ -361,8 +365,7 @@ class FaceTrackingSession:
         self._fitter = fitter
         self.neutral_rotation = Rotation.concatenate([f.rotation for f in fits]).mean()
         self._previous_fit = fits[-1]
-        self.eye_neutral = (eyes.neutral_reading(self._calibration_eyes)
-                            if self._calibration_eyes else None)
+        self._calibrate_eyes(fits)
         self._pending = 0
         self._calibration_points = []
         self._calibration_eyes = []
@@ -373,6 +376,14 @@ class FaceTrackingSession:
             self.solver = WeightSolver(mapped, self.avatar.names)
             self._eye_targets = None if self.eye_neutral is None else eyes.EyeTargets(
                 self.avatar.names, self.eye_neutral, self.solver.scale)
+
+    def _calibrate_eyes(self, fits):
+        """The eyes' neutral: the median of the calibration frames' readings, each brought
+        frontal by its own fitted pose (none when the frames had no eye readings)."""
+        self._eye_geometry = EyeGeometry(self.neutral, self.camera)
+        frontal = [self._eye_geometry.frontal(reading, fit.rotation, fit.translation)
+                   for reading, fit in zip(self._calibration_eyes, fits) if reading is not None]
+        self.eye_neutral = eyes.neutral_reading(frontal) if frontal else None
 
     def refine_take(self, closeness=1.0, iterations=20):
         """Jointly refine the blendshapes and the weights over the recorded take (Liu et al.,
