@@ -14,8 +14,8 @@ ARKit's eye keys by name (an avatar without them gets no eye rows):
 - lids: each lid's height change as a fraction of the neutral opening, against what each key
   does to it as the iris model reads it (LID_CHANGES): a blink mostly lowers the upper lid, a
   squint raises the lower one, wide raises the upper one;
-- gaze: the iris's shift, as an angle of the eyeball (EYE_RADIUS_WIDTHS), against the eyeLook
-  keys: yaw = Out - In for the left eye (In - Out for the right), pitch = Up - Down, at
+- gaze: the iris's shift, as an angle of the eyeball (EYE_RADIUS_WIDTHS), the same for both
+  eyes (conjugate_gaze), against the eyeLook keys: yaw = Out - In for the left eye (In - Out for the right), pitch = Up - Down, at
   EYE_LOOK_FULL_DEG for a weight of 1. While the eyes are closing their irises are not read: the
   gaze holds the last open reading, so a blink is never read as looking down.
 Each target row weighs EYE_TRUST times a typical key's landmark evidence: what the iris model
@@ -62,6 +62,7 @@ class EyeReading:
     upper: np.ndarray     # (2,) upper-lid height above the corner line
     lower: np.ndarray     # (2,) lower-lid height (negative: below the line)
     iris: np.ndarray      # (2, 2) iris centre (x towards the image's right, y up)
+    width: np.ndarray = None   # (2,) each eye's corner distance in the image, pixels
 
     @property
     def opening(self):
@@ -94,7 +95,8 @@ def read_eyes(eyes):
         upper[k], lower[k], iris[k] = _measure(contour[left], contour[right],
                                                contour[list(UPPER_LID)], contour[list(LOWER_LID)],
                                                centre)
-    return EyeReading(upper, lower, iris)
+    widths = np.linalg.norm(eyes.contours[:, OUTER] - eyes.contours[:, INNER], axis=1)
+    return EyeReading(upper, lower, iris, widths)
 
 
 # FaceMesh's corners of each eye in the reading's order (image-left corner, image-right corner).
@@ -164,7 +166,7 @@ class EyeGeometry:
                         start)
             upper[k], lower[k] = p[0], p[1]
             iris[k] = p[2:] if centres is None else centres[k] + p[2:]
-        return EyeReading(upper, lower, iris)
+        return EyeReading(upper, lower, iris, reading.width)
 
 
 def _newton(residual, start, step=1e-4):
@@ -194,6 +196,16 @@ def gaze_degrees(reading, neutral):
     return np.degrees(np.arcsin(np.clip(shift, -1.0, 1.0)))
 
 
+def conjugate_gaze(reading, neutral):
+    """(2, 2) both eyes' common (yaw, pitch): the eyes look the same way, and the eye seen
+    wider counts more (by its squared width in the image: on a turned head the far eye is
+    foreshortened and partly hidden by the nose, and its iris read worse)."""
+    gaze = gaze_degrees(reading, neutral)
+    weights = np.ones(2) if reading.width is None else reading.width ** 2
+    common = weights @ gaze / weights.sum()
+    return np.tile(common, (2, 1))
+
+
 class EyeTargets:
     """The eyes' rows of the weight solve for an avatar's keys (names) and the actor's neutral
     eyes; key_scale: the mean squared landmark norm of a key in the solve (WeightSolver.scale).
@@ -212,7 +224,7 @@ class EyeTargets:
         upper = (reading.upper - self.neutral.upper) / opening0
         lower = (reading.lower - self.neutral.lower) / opening0
         if np.mean(reading.opening / opening0) > OPEN_FRACTION:
-            self._open_gaze = gaze_degrees(reading, self.neutral)
+            self._open_gaze = conjugate_gaze(reading, self.neutral)
         rows, targets = [], []
         for k, eye_rows in enumerate(self._rows):
             values = (upper[k], lower[k], self._open_gaze[k, 0] / EYE_LOOK_FULL_DEG,
