@@ -84,7 +84,8 @@ def _draw_landmarks(layout, target):
 
 
 def _draw_engine_buttons(layout, settings):
-    """Register, Remove Preview, Clone and Generate ARKit, with the panel's settings."""
+    """Register, Remove Preview, Clone, Generate ARKit and Remove ExClone Keys, with the panel's
+    settings."""
     use_library = settings.source_mode == 'LIBRARY'
     column = layout.column(align=True)
     row = column.row(align=True)
@@ -104,6 +105,7 @@ def _draw_engine_buttons(layout, settings):
     arkit = column.operator("exclone.generate_arkit_shapes", icon='USER')
     arkit.replace_existing = settings.replace_existing
     _engine_options(arkit, settings)
+    column.operator("exclone.remove_keys", icon='TRASH')
 
 
 def _percent(value, digits=0):
