@@ -157,21 +157,19 @@ def find(parts):
     saying what to do when no face is found."""
     if not parts:
         raise ExCloneError("the character has no mesh to find a face on; " + WHAT_TO_DO)
-    weldings = [welded(part.mesh) for part in parts]
-    vertices, triangles, owner = _together([w[0] for w in weldings])
+    triangulated = [part.mesh.triangles() for part in parts]
+    vertices, triangles, owner = _together([part.mesh for part in parts], triangulated)
     found = face_finding.find_face(vertices, triangles)
     hits = np.bincount(owner[found.triangle[found.triangle >= 0]], minlength=len(parts))
     if not hits.any():
         raise ExCloneError("the face was seen but lands on no mesh; " + WHAT_TO_DO)
     index = int(np.argmax(hits))
-    joined, weld_index = weldings[index]
-    own_triangles = joined.triangles()
+    mesh, own_triangles = parts[index].mesh, triangulated[index]
     first = np.flatnonzero(owner == index)[0]
     on_part = (found.triangle >= first) & (found.triangle < first + len(own_triangles))
     found = replace(found, triangle=np.where(on_part, found.triangle - first, -1))
-    region = _with_inner_parts(joined.vertices, own_triangles,
-                               face_finding.head_region(joined.vertices, own_triangles, found))
-    head = head_cut(parts[index].mesh, region[weld_index])
+    region = face_finding.head_region(mesh.vertices, own_triangles, found)
+    head = head_cut(mesh, _with_inner_parts(mesh, own_triangles, region))
     if len(head.vertex_ids) == 0:
         raise ExCloneError(f"no head region was found on '{parts[index].name}'; " + WHAT_TO_DO)
     world = guide(found, head.mesh.vertices)
@@ -184,24 +182,29 @@ def find(parts):
     return CharacterFace(index, parts[index].name, head, own, turn=turn, origin=origin)
 
 
-def _with_inner_parts(vertices, triangles, region):
-    """The head region plus the separate parts of the same mesh that lie wholly within its
-    bounding box and outside it (the eyeballs, teeth, lashes of a one-mesh head): they are not
-    solved but follow the head in every key (docs/method.md §9), as they did before the cut."""
-    parts = vertex_parts(len(vertices), triangles)
+def _with_inner_parts(mesh, triangles, region):
+    """The head region plus the separate parts of the same mesh (welded: not the pieces of a
+    split seam) that lie wholly within its bounding box and outside it (the eyeballs, teeth,
+    lashes of a one-mesh head): they are not solved but follow the head in every key
+    (docs/method.md §9), as they did before the cut."""
+    joined, index = welded(mesh)
+    vertices = mesh.vertices
+    triangles = index[triangles]
+    parts = vertex_parts(len(joined.vertices), triangles)[index]
     low, high = vertices[region].min(axis=0), vertices[region].max(axis=0)
     outside_box = ~np.all((vertices >= low) & (vertices <= high), axis=1)
     count = parts.max() + 1
     inner = (np.bincount(parts, outside_box, count) == 0) & (np.bincount(parts, region, count) == 0)
-    used = np.zeros(len(vertices), dtype=bool)
+    used = np.zeros(len(joined.vertices), dtype=bool)
     used[triangles.ravel()] = True
-    return region | (inner[parts] & used)
+    return region | (inner[parts] & used[index])
 
 
-def _together(meshes):
-    """All meshes as one: (vertices, triangles, (T,) the mesh each triangle comes from)."""
+def _together(meshes, triangulated):
+    """All meshes (and their triangles) as one: (vertices, triangles, (T,) the mesh each
+    triangle comes from)."""
     offsets = np.cumsum([0] + [len(mesh.vertices) for mesh in meshes])
-    triangles = [mesh.triangles() + offset for mesh, offset in zip(meshes, offsets)]
+    triangles = [own + offset for own, offset in zip(triangulated, offsets)]
     owner = np.repeat(np.arange(len(meshes)), [len(t) for t in triangles])
     return (np.concatenate([mesh.vertices for mesh in meshes]),
             np.concatenate(triangles).astype(np.int64), owner)

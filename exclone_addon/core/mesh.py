@@ -29,6 +29,10 @@ class PolyMesh:
     @classmethod
     def from_faces(cls, vertices, faces):
         """faces: a (P, k) array or a list of vertex-index sequences."""
+        if isinstance(faces, np.ndarray) and faces.ndim == 2:     # one size: no loop per face
+            return cls(np.asarray(vertices, dtype=np.float64),
+                       np.full(len(faces), faces.shape[1], dtype=np.int64),
+                       faces.astype(np.int64).ravel())
         faces = [np.asarray(f, dtype=np.int64) for f in faces]
         totals = np.array([len(f) for f in faces], dtype=np.int64)
         loops = np.concatenate(faces) if faces else np.zeros(0, np.int64)
