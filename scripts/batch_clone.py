@@ -69,12 +69,13 @@ PROG = "batch_clone"
 BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 OUT_SUFFIXES = files.RESULT_SUFFIXES          # .blend, .glb, .fbx
 MIB = 1024 * 1024
-# One target's process, for sizing --jobs by free memory. Measured on this project's 2-core
-# Linux machine (ru_maxrss of the bpy-module process, 57 expressions): 387 MiB at 4,244 target
-# vertices, 1,323 MiB at 25,365, 2,436 MiB at 49,445, 10,534 MiB at 204,277, i.e. about 46 KiB
-# per vertex over a base; both rounded up, so a batch errs towards fewer jobs, never swap.
-JOB_BASE_BYTES = 500 * MIB
-JOB_BYTES_PER_VERTEX = 48 * 1024
+# One target's process, for sizing --jobs by free memory. Measured (peak RSS of the bpy-module
+# process, 57 expressions, --no-preview, the streamed transfer): 520 MiB onto the 4,244-vertex
+# demo head, 875 MiB onto the 66,649-vertex MakeHuman dense head, i.e. ~500 MiB + 5.8 KiB per
+# target vertex. Rounded up, the slope doubled (other sources, more expressions): a batch errs
+# towards fewer jobs, never towards swapping.
+JOB_BASE_BYTES = 512 * MIB
+JOB_BYTES_PER_VERTEX = 12 * 1024
 # A target that is not an OBJ is not opened to count its vertices: its file size over this
 # many bytes per vertex (a glTF/FBX/.blend holds at least a position, a normal and UVs per
 # vertex, ~32 bytes) overestimates the count, the safe side.
