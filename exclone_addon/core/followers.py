@@ -357,24 +357,22 @@ def _set_mouth_roles(face, mouth):
     """Set every mouth piece's roles (UPPER, LOWER or TONGUE per vertex): each part by its centre
     against the bite plane, a part holding the teeth of both rows (gums) vertex by vertex.
     mouth: [(vertices, triangles, Piece)]."""
-    parts = [face.local(v)[vertex_parts(len(v), t) == label]
-             for v, t, _ in mouth for label in np.unique(vertex_parts(len(v), t))]
-    centres = np.array([part.mean(axis=0) for part in parts]).reshape(-1, 3)
+    # every part of every piece: (piece, its vertices' mask, their face coordinates)
+    parts = []
+    for vertices, triangles, piece in mouth:
+        labels, local = vertex_parts(len(vertices), triangles), face.local(vertices)
+        parts += [(piece, labels == label, local[labels == label]) for label in np.unique(labels)]
+    centres = np.array([local.mean(axis=0) for _, _, local in parts]).reshape(-1, 3)
     plane = _bite_plane(centres)
     below = centres[:, 1] < plane(centres)
-    k = 0
-    for vertices, triangles, piece in mouth:
-        labels = vertex_parts(len(vertices), triangles)
-        local = face.local(vertices)
-        piece.roles = np.full(len(vertices), UPPER)
-        for label in np.unique(labels):
-            mine = labels == label
-            others = np.arange(len(centres)) != k
-            if _holds_both_rows(face, local[mine], centres[others], below[others]):
-                piece.roles[mine] = np.where(local[mine, 1] < plane(local[mine]), LOWER, UPPER)
-            elif below[k]:
-                piece.roles[mine] = TONGUE if _is_tongue(face, local[mine]) else LOWER
-            k += 1
+    for _, _, piece in mouth:
+        piece.roles = np.full(len(piece.ids), UPPER)
+    for k, (piece, mine, local) in enumerate(parts):
+        others = np.arange(len(centres)) != k
+        if _holds_both_rows(face, local, centres[others], below[others]):
+            piece.roles[mine] = np.where(local[:, 1] < plane(local), LOWER, UPPER)
+        elif below[k]:
+            piece.roles[mine] = TONGUE if _is_tongue(face, local) else LOWER
 
 
 def _holds_both_rows(face, local, other_centres, other_below):
