@@ -23,6 +23,7 @@ from .mesh import checked_triangles, triangle_areas, vertex_parts, welded
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .reports import listed
+from .rims import RimGoals
 from .surface import Surface
 from .threads import limited_threads
 from .transfer import CorrespondedTransfer, Transfer
@@ -82,6 +83,7 @@ class FaceFit:
     # border of a head cut out of a body); set before the first transfer
     fixed_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     _transfer: object = None          # the factorised system, made on the first transfer
+    _rims: object = None              # rims.RimGoals of the eyes, made on the first transfer
 
 
 @dataclass
@@ -457,7 +459,11 @@ def _transferred(fit, deltas):
                           fit.formulation, fit.fixed_vertices)
         fit._transfer = CorrespondedTransfer(system, fit.aligned_source, fit.source_region,
                                              fit.vertex_map, fit.mapped, fit.pairs, fit.weights)
-    result = fit._transfer(deltas @ fit.rotation.T * fit.scale)
+    if fit._rims is None:
+        fit._rims = RimGoals(fit.target_region, fit.aligned_source, fit.source_region,
+                             fit.landmark_names, fit.welded_target.index[fit.target_landmarks],
+                             fit.vertex_map, fit._transfer.system)
+    result = fit._transfer(deltas @ fit.rotation.T * fit.scale, correction=fit._rims)
     result[:, fit._transfer.fixed] = 0.0       # also where a fixed vertex was left to follow
     if not np.all(np.isfinite(result)):
         raise ExCloneError("transfer produced invalid values (NaN); the target mesh may be broken")

@@ -6,22 +6,23 @@ rest, at EYE_STATIONS along the whole lid), how much further apart the lips stan
 fraction of the face's diagonal), the worst edge stretch, the triangles turned over, and how far
 anything outside the solved region moved.
 
-An eye's lids are found on the rest target from its corner landmarks and its surface. The
-candidates for its margins are the open border loop around the eye (an eye hole), split at the
-corners into the half above and the half below, and the fronts of the folds where the skin
-turns back into the opening (a vertex with an edge running straight back from it and none
-straight forward: a socket, or a lid modelled with a thickness). Of those, each lid keeps its
-visible edge: the front-most candidates (not the back of the lid, the socket, or a hole's border
-behind a thick lid), and among them the ones nearest the opening (not a crease above it). Where
-there are none the measure is None with the reason. The lids are followed by vertex id through
-every expression, so a lid that slides down reads as its vertices do. The lips are the upper and
+An eye's lids are found on the rest target from its corner landmarks and its surface, as a
+person finds them: seen from the front (a headlight render along the face's forward,
+core.face_render). In each pixel column between the corners, going up (down) from the corners'
+line, the lid's edge is where the first steep stretch ends: the opening (no surface, or the
+socket far behind) and the surface turned more than 45 degrees away (a fold into the socket, the
+top of a lid modelled with a thickness) give way to the lid's front. The vertex nearest that
+point joins the lid's row, and each row keeps the vertices nearest the opening (not a crease
+above it). However the eye is modelled (a hole, a socket, thick lids, a coarse game mesh) this
+is the edge one sees. Where there is none the measure is None with the reason. The lids are
+followed by vertex id through every expression, so a lid that slides down reads as its vertices
+do. The lips are the upper and
 lower lip landmarks, which move with the lips however the mouth is modelled.
 """
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from . import mesh
+from .face_render import Camera, render
 from .proximity import interpolate
 from .surface import Surface
 
@@ -29,20 +30,19 @@ from .surface import Surface
 # corners' distance: the whole lid, not only its middle; the corners themselves are left out
 # (the gap closes there on any face).
 EYE_STATIONS = np.linspace(0.2, 0.8, 7)
-# An edge runs straight back (into an opening) when it is within ~35 degrees of the view axis.
-FOLD_COS = 0.8
-# The front of a lid: no margin vertex within FRONT_WINDOW stations stands FRONT_DEPTH x the
-# eye's width in front of it.
-FRONT_WINDOW = 0.15
-FRONT_DEPTH = 0.1
+# The eye is seen from the front in a VIEW_PIXELS square image VIEW_WIDTH x its width across.
+VIEW_PIXELS = 240
+VIEW_WIDTH = 1.4
+# Where the surface, seen from the front, turns away by more than 45 degrees (depth change per
+# unit of height), the lid's edge is near: the opening behind it, or the fold into a socket.
+STEEP = 1.0
+# The opening behind the lids lies at least this far (x the eye's width) behind their edge.
+OPEN_DEPTH = 0.1
 # A lid's visible edge is the one nearest the opening among its margin candidates within this
 # many stations.
 EDGE_WINDOW = 0.05
 # The lids are looked for within this far of the corners' line, x the corners' distance.
 EYE_REACH = 0.35
-# A margin border loop must reach this close to the corners' middle, x the corners' distance.
-LOOP_REACH = 0.5
-
 # An edge's image on the source shorter than this share of the edge has collapsed (both ends on
 # one point of the source): its stretch ratio means nothing.
 COLLAPSED = 1e-3
@@ -89,84 +89,68 @@ class _Opening:
         return (points - self.first) @ self.up - self.station(points) * self.rise
 
 
-def _border_loops(triangles, n_vertices):
-    """[ids of each open border loop's vertices]."""
-    edges = mesh.boundary_edges(triangles)
-    if not len(edges):
-        return []
-    graph = sp.coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])),
-                          shape=(n_vertices, n_vertices))
-    _, labels = connected_components(graph, directed=False)
-    on_border = np.unique(edges)
-    return [on_border[labels[on_border] == label] for label in np.unique(labels[on_border])]
+def _eye_view(vertices, triangles, opening):
+    """The eye seen from the front (face_render, orthographic along the face's forward):
+    (camera, (P, P) depth of each pixel along forward (-inf where no surface), (P, P, 3) the
+    surface point seen, (P, P) its triangle (-1 for none))."""
+    centre = opening.first + 0.5 * opening.width * opening.along + 0.5 * opening.rise * opening.up
+    camera = Camera.looking(centre, opening.forward, opening.up, VIEW_WIDTH * opening.width,
+                            VIEW_PIXELS)
+    seen = render(vertices, triangles, camera)
+    pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
+    points, triangle = seen.surface_points(pixels.reshape(-1, 2))
+    depth = np.where(triangle >= 0, (points - centre) @ opening.forward, -np.inf)
+    shape = (VIEW_PIXELS, VIEW_PIXELS)
+    return camera, depth.reshape(shape), points.reshape(shape + (3,)), triangle.reshape(shape)
 
 
-def _split_at_corners(ids, opening, vertices):
-    """(upper ids, lower ids) of a loop around an opening: above or below the line through the
-    loop's two vertices nearest the opening's corners."""
-    s, h = opening.station(vertices[ids]), opening.height(vertices[ids])
-    ends = [np.argmin(np.hypot(s - end, h / opening.width)) for end in (0.0, 1.0)]
-    line = np.interp(s, s[ends], h[ends])
-    return ids[h > line], ids[h < line]
+def _edge_pixel(depth, heights):
+    """Index (into a column's pixels ordered from the corners' line outwards, at `heights`) of
+    the lid's edge: where the first steep stretch (the surface turned more than 45 degrees away
+    from the viewer, or no surface: the opening, a fold into a socket, the top of a lid's
+    thickness) ends; None if the column has none."""
+    with np.errstate(invalid="ignore"):
+        slope = np.diff(depth) / np.maximum(np.abs(np.diff(heights)), 1e-300)
+    steep = (np.isnan(slope) | (slope > STEEP)) & np.isfinite(depth[1:])
+    steep |= ~np.isfinite(depth[:-1])       # leaving the opening (no surface) is steep
+    first = np.flatnonzero(steep)
+    if not len(first):
+        return None
+    end = first[0]
+    while end + 1 < len(steep) and steep[end + 1]:
+        end += 1
+    return end + 1
 
 
-def _loop_margin(vertices, triangles, opening):
-    """(upper ids, lower ids) of the open border loop around the opening, or None."""
-    middle = opening.first + 0.5 * opening.width * opening.along
-    for loop in _border_loops(triangles, len(vertices)):
-        reach = np.linalg.norm(vertices[loop] - middle, axis=1).min()
-        if reach < LOOP_REACH * opening.width and np.ptp(opening.station(vertices[loop])) > 0.6:
-            return _split_at_corners(loop, opening, vertices)
-    return None
-
-
-def _fold_margin(vertices, triangles, opening):
-    """(upper ids, lower ids) of the fronts of the folds where the skin turns back into the
-    opening (within EYE_REACH x width of the corners' line, between the corners), or None."""
-    edges = np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
-    vectors = vertices[edges[:, 1]] - vertices[edges[:, 0]]
-    cos = vectors @ opening.forward / np.maximum(np.linalg.norm(vectors, axis=1), 1e-300)
-    back = np.zeros(len(vertices), dtype=bool)     # a vertex with an edge straight back from it
-    ahead = np.zeros(len(vertices), dtype=bool)    # ... with an edge straight forward from it
-    back[edges[cos > FOLD_COS, 1]] = ahead[edges[cos > FOLD_COS, 0]] = True
-    back[edges[cos < -FOLD_COS, 0]] = ahead[edges[cos < -FOLD_COS, 1]] = True
-    s, h = opening.station(vertices), opening.height(vertices)
-    inside = (s > 0.05) & (s < 0.95) & (np.abs(h) < EYE_REACH * opening.width)
-    fronts = np.flatnonzero(back & ~ahead & inside)
-    upper, lower = fronts[h[fronts] > 0], fronts[h[fronts] < 0]
-    return (upper, lower) if len(upper) >= 2 and len(lower) >= 2 else None
-
-
-def _margin(vertices, triangles, opening):
-    """(upper ids, lower ids, how they were found) of the candidates for an eye's lid margins
-    (the border loop around the opening and the fronts of the folds into it), or
-    (None, None, why there are none)."""
-    found = [(name, rows) for name, rows in
-             (("border loop", _loop_margin(vertices, triangles, opening)),
-              ("lid folds", _fold_margin(vertices, triangles, opening))) if rows is not None]
-    if not found:
-        return None, None, "no open border loop around the eye and no fold into an opening " \
-            "between its corners"
-    upper, lower = (np.unique(np.concatenate([rows[k] for _, rows in found])) for k in (0, 1))
+def _seen_margin(vertices, triangles, opening):
+    """(upper ids, lower ids, how) of the lid margins as seen from the front: in every pixel
+    column between the corners, going up (down) from the corners' line within EYE_REACH x the
+    width, the vertex nearest the lid's edge (_edge_pixel); (None, None, why) without two of each."""
+    camera, depth, points, triangle = _eye_view(vertices, triangles, opening)
+    rows = np.arange(VIEW_PIXELS)
+    found = ([], [])
+    for column in range(VIEW_PIXELS):
+        line = camera.ray_origins(np.column_stack([np.full(VIEW_PIXELS, column), rows]))
+        if not 0.05 < opening.station(line[:1])[0] < 0.95:
+            continue
+        heights = opening.height(line)
+        for sign, row in ((1, found[0]), (-1, found[1])):
+            ahead = np.flatnonzero((sign * heights >= 0)
+                                   & (sign * heights <= EYE_REACH * opening.width))
+            ahead = ahead[np.argsort(sign * heights[ahead])]
+            edge = _edge_pixel(depth[ahead, column], heights[ahead])
+            # the column must start in the opening (no surface, or one far behind the lid):
+            # where a lid covers the corners' line, the first steep stretch is a crease above
+            if edge is None or triangle[ahead[edge], column] < 0 or \
+                    depth[ahead[0], column] > depth[ahead[edge], column] - OPEN_DEPTH * opening.width:
+                continue
+            corners = triangles[triangle[ahead[edge], column]]
+            row.append(corners[np.argmin(np.linalg.norm(
+                vertices[corners] - points[ahead[edge], column], axis=1))])
+    upper, lower = (np.unique(np.asarray(row, dtype=np.int64)) for row in found)
     if min(len(upper), len(lower)) < 2:
-        return None, None, "too few lid margin vertices between the eye's corners"
-    return upper, lower, " and ".join(name for name, _ in found)
-
-
-def _front_row(ids, opening, vertices):
-    """The margin vertices `ids` at the front of the lid: none stands straight in front of them
-    (within 0.05 x the eye's width of the view axis: the back of a lid modelled with a
-    thickness), and none within FRONT_WINDOW stations stands more than FRONT_DEPTH x the width
-    in front of them (the socket behind the lids, a hole's border behind a thick lid)."""
-    points = vertices[ids]
-    offsets = points[None, :, :] - points[:, None, :]              # (k, k, 3): k -> each other
-    ahead = offsets @ opening.forward
-    lateral = np.linalg.norm(offsets - ahead[..., None] * opening.forward, axis=2)
-    s = opening.station(points)
-    near = np.abs(s[None, :] - s[:, None]) <= FRONT_WINDOW
-    hidden = ((ahead > 0) & (lateral < 0.05 * opening.width)).any(axis=1) \
-        | (near & (ahead > FRONT_DEPTH * opening.width)).any(axis=1)
-    return ids[~hidden]
+        return None, None, "no lid edges seen between the eye's corners (no opening in front)"
+    return upper, lower, "seen from the front"
 
 
 def _visible_edge(ids, opening, vertices, sign):
@@ -179,7 +163,7 @@ def _visible_edge(ids, opening, vertices, sign):
     return ids[np.array(edge, dtype=bool)]
 
 
-def _row_heights(opening, points, stations):
+def row_heights(opening, points, stations):
     """(S,) the height of a row of margin points at each station (linear between them)."""
     s = opening.station(points)
     order = np.argsort(s)
@@ -192,18 +176,17 @@ class _Lids:
 
     def __init__(self, vertices, triangles, inner, outer, frame):
         self.opening = _Opening(inner, outer, frame)
-        upper, lower, self.how = _margin(vertices, triangles, self.opening)
+        upper, lower, self.how = _seen_margin(vertices, triangles, self.opening)
         self.rest = None
         if upper is not None:
-            self.upper, self.lower = (
-                _visible_edge(_front_row(row, self.opening, vertices), self.opening, vertices, sign)
-                for row, sign in ((upper, 1), (lower, -1)))
+            self.upper, self.lower = (_visible_edge(row, self.opening, vertices, sign)
+                                      for row, sign in ((upper, 1), (lower, -1)))
             self.rest = self.gaps(vertices)
 
     def gaps(self, positions):
         """(S,) height of the upper lid above the lower one at each station (the rest frame's up)."""
-        return (_row_heights(self.opening, positions[self.upper], EYE_STATIONS)
-                - _row_heights(self.opening, positions[self.lower], EYE_STATIONS))
+        return (row_heights(self.opening, positions[self.upper], EYE_STATIONS)
+                - row_heights(self.opening, positions[self.lower], EYE_STATIONS))
 
 
 class Openings:

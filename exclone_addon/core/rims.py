@@ -38,11 +38,13 @@ SCALE_RANGE = (1 / 3, 3.0)
 class RimGoals:
     """The eyes' rim rows on the welded target region, and the factorised correction."""
 
-    def __init__(self, region, landmark_names, landmark_ids, vertex_map, transfer):
+    def __init__(self, region, source_vertices, source_triangles, landmark_names, landmark_ids,
+                 vertex_map, transfer):
         """region: surface.Surface of the target triangles the transfer solves (welded numbering);
-        landmark_names/ids: the fit's target landmarks (welded ids); vertex_map: the fit's
-        correspondence.VertexMap; transfer: the fit's transfer.Transfer (its gradient operator
-        and weights)."""
+        source_vertices/triangles: the source aligned to the target (welded) and its region's
+        triangles; landmark_names/ids: the fit's target landmarks (welded ids); vertex_map: the
+        fit's correspondence.VertexMap; transfer: the fit's transfer.Transfer (its gradient
+        operator and weights)."""
         openings = expression_measures.Openings(
             region.vertices, region.triangles,
             {str(name): int(i) for name, i in zip(landmark_names, landmark_ids)})
@@ -50,17 +52,35 @@ class RimGoals:
                                      for lids in openings.lids.values()) if eye.usable]
         self.ids = np.concatenate([eye.ids for eye in self.eyes]) if self.eyes \
             else np.zeros(0, dtype=np.int64)
+        self.images = _Images(vertex_map, source_triangles, self.ids)
+        self.rest_at = self.images.at(source_vertices[None])[0]
         self.solve = _correction_solver(transfer, self.ids, region) if len(self.ids) else None
 
-    def __call__(self, result, rest_at, moves_at):
-        """The transferred displacements `result` (E, n, 3) with the rims brought to their goals.
-        rest_at (n, 3), moves_at (E, n, 3): the source's aligned rest positions and
-        displacements at each mapped target vertex (zeros elsewhere)."""
+    def __call__(self, result, source_deltas):
+        """The transferred displacements `result` (E, n, 3) with the rims brought to their goals;
+        source_deltas (E, n_source, 3): the expressions on the aligned source."""
         if self.solve is None:
             return result
-        goals = np.concatenate([eye.goals(result, rest_at, moves_at) for eye in self.eyes],
-                               axis=1)                                          # (E, k, 3)
+        moves_at = self.images.at(source_deltas)                                # (E, k, 3)
+        goals, start = [], 0
+        for eye in self.eyes:
+            mine = slice(start, start + len(eye.ids))
+            goals.append(eye.goals(result, self.rest_at[mine], moves_at[:, mine]))
+            start = mine.stop
+        goals = np.concatenate(goals, axis=1)                                   # (E, k, 3)
         return result + self.solve(goals - result[:, self.ids])
+
+
+class _Images:
+    """The source at the corresponding points (the vertex map) of the target's rim vertices."""
+
+    def __init__(self, vertex_map, source_triangles, ids):
+        self.vertex_map, self.source_triangles, self.ids = vertex_map, source_triangles, ids
+
+    def at(self, values):
+        """(E, k, 3) per-source-vertex values (E, n_source, 3) at the rim vertices' images."""
+        return np.moveaxis(self.vertex_map.sample(np.moveaxis(values, 0, 1),
+                                                  self.source_triangles, self.ids), 1, 0)
 
 
 class _EyeRims:
@@ -88,18 +108,19 @@ class _EyeRims:
         """(k,) the upper row's height above the lower row's at every rim vertex's station."""
         return self._row_height(positions, self.upper) - self._row_height(positions, ~self.upper)
 
-    def goals(self, result, rest_at, moves_at):
+    def goals(self, result, images_rest, images_moves):
         """(E, k, 3): each rim vertex's transferred motion with its motion along the face's up
-        replaced by its image's on the source, scaled by the faces' rest gaps at its station."""
+        replaced by its image's on the source (images_rest (k, 3), images_moves (E, k, 3): the
+        aligned source at the rim vertices' images), scaled by the faces' mean open heights."""
         # one scale per eye, the ratio of the two faces' mean open heights: per station the
         # ratio carries the images' small slips along the lid (on the same face remeshed it
         # varied by 6% around 1 and cost 6% of the blink's error)
-        source_rest = self._gap(rest_at[self.ids]).sum()
+        source_rest = self._gap(images_rest).sum()
         scale = self.target_rest.sum() / source_rest if source_rest > 0 else 1.0
         scale = float(np.clip(scale, *SCALE_RANGE))
         up = self.opening.up
         moved = result[:, self.ids]
-        wanted = scale * (moves_at[:, self.ids] @ up)                           # (E, k)
+        wanted = scale * (images_moves @ up)                                    # (E, k)
         return moved + (wanted - moved @ up)[..., None] * up
 
 
