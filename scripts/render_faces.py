@@ -1,7 +1,6 @@
 """Render a face posed with known expression weights and a known head pose through a known camera
-(background Blender, Workbench): the known-answer frames the tracker's model is learned from
-(scripts/make_tracker_model.py) and the rendered takes the tracking tests track
-(blender_tests/helpers/takes.py).
+(background Blender, Workbench): the known-answer frames of the rendered takes the tracking tests
+track through the image models (blender_tests/helpers/takes.py).
 
 The head is an ICT-FaceKit topology mesh (the bundled library, or an ICT identity): skin, lips
 and brows coloured per vertex, white eyeballs with a dark iris and pupil, dark mouth socket,

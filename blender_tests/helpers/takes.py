@@ -296,12 +296,14 @@ def unit_scores(take, tracked):
     return scores
 
 
-def largest_false_weight(take, tracked):
-    """The largest weight of any key after calibration on a take whose face stays neutral, and
-    its key's name."""
-    weights = tracked.weights[CALIBRATION_FRAMES:]
+def largest_false_weight(take, tracked, leave_out=("eye",)):
+    """The largest weight after calibration on a take whose face stays neutral, and its key's
+    name, over the keys whose names do not start with `leave_out` (default: the eyes' keys,
+    which the eye tests check)."""
+    keys = [j for j, name in enumerate(take.names) if not name.startswith(tuple(leave_out))]
+    weights = tracked.weights[CALIBRATION_FRAMES:, keys]
     k, j = np.unravel_index(np.nanargmax(weights), weights.shape)
-    return float(weights[k, j]), take.names[j]
+    return float(weights[k, j]), take.names[keys[j]]
 
 
 def pose_errors(take, tracked):
