@@ -12,7 +12,8 @@ by the shipped tracker model, so no registration runs here.
    and 95th percentile per stage and of the whole step over the frames after calibration, in
    wall-clock and in CPU time of the process (the machine may be shared); Blender's own
    evaluation of the shape keys (depsgraph update, done by Blender at redraw, not by the step)
-   is timed separately.
+   is timed separately. Beside them, each stage's model or solve called alone on one tracked
+   frame, in CPU milliseconds.
 2. The take as Drive from Webcam runs it in a window: a simulated 30 fps camera (each read
    waits for the camera's next frame, as the newest-frame reader does) read and tracked by the
    worker thread, and a 120 Hz timer loop on this thread applying the newest result
@@ -36,7 +37,7 @@ from skimage import data
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from exclone_addon.blender import mesh_io  # noqa: E402
 from exclone_addon.blender.webcam_take import Take  # noqa: E402
-from exclone_addon.core import capture  # noqa: E402
+from exclone_addon.core import capture, face_models  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
 from exclone_addon.core.retarget import AvatarRig  # noqa: E402
 from exclone_addon.core.session import STAGES, FaceTrackingSession  # noqa: E402
@@ -133,6 +134,31 @@ class SimulatedCamera(capture.FrameSource):
                              f"frame {k} of the camera", captured)
 
 
+def component_cpu(session, image, repeats=30):
+    """CPU milliseconds (all of the process's threads) per call of each stage's model or solve
+    on one tracked frame, the median of `repeats`: what a loaded machine does not change much."""
+    result = session.step(image, 1000.0)
+    roi = face_models.roi_from_landmarks(result.landmarks)
+    fit = session._previous_fit
+    displacement = session._fitter.model.shape(fit.params) - session.neutral
+    calls = {
+        "landmarks": lambda: session.landmarker.landmarks(image, roi),
+        "iris": lambda: session.iris.eyes(image, result.landmarks),
+        "fit": lambda: session._fitter.fit(result.landmarks[:, :2], previous=fit),
+        "weights": lambda: session.solver.solve(displacement),
+    }
+    times = {}
+    for name, call in calls.items():
+        samples = []
+        for _ in range(repeats):
+            start = time.process_time()
+            call()
+            samples.append(1000 * (time.process_time() - start))
+        times[name] = round(float(np.median(samples)), 3)
+    times["sum"] = round(sum(times.values()), 3)
+    return times
+
+
 def run_live(session, frames, seconds, obj, names):
     """The take in a window for `seconds`: worker thread + timer ticks on this thread; returns
     (all ticks' ms, the take)."""
@@ -174,6 +200,7 @@ def main(argv):
     session = FaceTrackingSession(avatar=rig, calibration_frames=CALIBRATION_FRAMES)
     session_s = time.perf_counter() - clock
     rows, evaluate_ms, calibrate_ms, lost = run_take(session, frames, key_blocks, rig.names)
+    cpu_per_call = component_cpu(session, frames[-1])
     live_session = FaceTrackingSession(avatar=rig, calibration_frames=CALIBRATION_FRAMES)
     ticks, take = run_live(live_session, frames, args.live_seconds, obj, rig.names)
 
@@ -187,6 +214,7 @@ def main(argv):
         "one_off_s": {"avatar_setup": round(setup_s, 3), "session_start": round(session_s, 3),
                       "calibration": round(calibrate_ms / 1000, 3)},
         "blender_evaluation_ms": summary(evaluate_ms),
+        "cpu_per_call_ms": cpu_per_call,
         "live": {"camera_fps": CAMERA_FPS, "timer_hz": TIMER_HZ,
                  "camera_frames": int(args.live_seconds * CAMERA_FPS),
                  "frames_applied": take.frames_read,
