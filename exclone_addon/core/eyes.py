@@ -9,14 +9,17 @@ it does not change as the face moves in the image, nearer or farther or rolled. 
 - the iris centre relative to the corners' midpoint.
 Eye 0 is the image-left eye (the subject's right, ARKit's _R), eye 1 the image-right eye (_L).
 
+A turned head's reading is first brought back to what the eyes would show facing the camera
+(EyeGeometry, through the fitted head pose).
+
 Targets, relative to the actor's neutral reading (calibrated with the neutral face), against
 ARKit's eye keys by name (an avatar without them gets no eye rows):
 - lids: each lid's height change as a fraction of the neutral opening, against what each key
   does to it as the iris model reads it (LID_CHANGES): a blink mostly lowers the upper lid, a
   squint raises the lower one, wide raises the upper one;
 - gaze: the iris's shift, as an angle of the eyeball (EYE_RADIUS_WIDTHS), the same for both
-  eyes (conjugate_gaze), against the eyeLook keys: yaw = Out - In for the left eye (In - Out for the right), pitch = Up - Down, at
-  EYE_LOOK_FULL_DEG for a weight of 1. While the eyes are closing their irises are not read: the
+  eyes (conjugate_gaze), against the eyeLook keys: yaw = Out - In for the left eye (In - Out
+  for the right), pitch = Up - Down, at EYE_LOOK_FULL_DEG for a weight of 1. While the eyes are closing their irises are not read: the
   gaze holds the last open reading, so a blink is never read as looking down.
 Each target row weighs EYE_TRUST times a typical key's landmark evidence: what the iris model
 reads of the eyes overrules what the face's landmarks suggest there.
