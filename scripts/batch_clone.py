@@ -38,6 +38,7 @@ import platform
 import re
 import subprocess
 import sys
+import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -647,7 +648,8 @@ def _console_line(index, count, entry):
 
 def _run_targets(args, targets):
     """Every target through this script in its own process, --jobs at a time (one bad or
-    crashing target cannot stop the others); returns (summary entries in target order, jobs).
+    crashing target cannot stop the others); returns (summary entries in target order, jobs,
+    interrupted: Ctrl-C, after which the targets not finished are failed "interrupted").
     --resume: done targets are skipped; --summary-only: nothing runs, a target without its
     report is failed."""
     entries = [None] * len(targets)
@@ -664,30 +666,49 @@ def _run_targets(args, targets):
         if entry is not None:
             print(_console_line(index, len(targets), entry), flush=True)
     if not pending:
-        return entries, 0
+        return entries, 0, False
     jobs, why = plan_jobs(args.jobs, len(pending),
                           [estimated_vertices(targets[i].spec) for i in pending],
                           available_memory(), os.cpu_count() or 1)
     print(f"batch: {len(pending)} target(s) to run, {jobs} at a time ({why})", flush=True)
     command, shared, env = _child_command(), _shared_arguments(args), _batch_environment(jobs)
 
-    def one(index):
-        entries[index] = _run_target(command, targets[index], shared, env)
-        print(_console_line(index, len(targets), entries[index]), flush=True)
+    interrupted, running, stopped = threading.Event(), set(), set()
 
-    with ThreadPoolExecutor(max_workers=jobs) as pool:
+    def one(index):
+        running.add(index)
+        entry = _run_target(command, targets[index], shared, env)
+        if entry["status"] == "failed" and interrupted.is_set():
+            entry["error"] = "interrupted"     # whatever the process said as it was stopped
+        entries[index] = entry
+        running.discard(index)
+        print(_console_line(index, len(targets), entry), flush=True)
+
+    pool = ThreadPoolExecutor(max_workers=jobs)
+    try:
         list(pool.map(one, pending))
-    return entries, jobs
+    except KeyboardInterrupt:   # Ctrl-C: no new target starts; those running end (they get it too)
+        interrupted.set()
+        stopped.update(running)
+        pool.shutdown(wait=True, cancel_futures=True)
+        for index in pending:
+            if entries[index] is None:
+                entries[index] = _entry(targets[index], "failed", 0.0, error="interrupted")
+            elif index in stopped and entries[index]["status"] == "failed":
+                entries[index]["error"] = "interrupted"
+        return entries, jobs, True
+    pool.shutdown()
+    return entries, jobs, False
 
 
 def run_batch(args):
     """Every target (_run_targets), then the summary report; returns the summary. ExCloneError
-    if any target failed, after the others were written."""
+    if any target failed or the batch was interrupted, after the summary was written."""
     started = time.perf_counter()
     specs = batch_targets(args.target)
     out_dir, summary_path, targets = _batch_paths(args, specs)
     _refuse_replacing_batch(args, targets, summary_path)
-    entries, jobs = _run_targets(args, targets)
+    entries, jobs, interrupted = _run_targets(args, targets)
     counts = {status: sum(entry["status"] == status for entry in entries)
               for status in ("done", "failed", "skipped")}
     summary = {"targets": entries, **counts, "jobs": jobs,
@@ -703,6 +724,10 @@ def run_batch(args):
     print(f"summary: {summary_path} ({counts['done']} done, {counts['failed']} failed, "
           f"{counts['skipped']} skipped, {summary['seconds']:.1f} s)")
     failed = [entry for entry in entries if entry["status"] == "failed"]
+    if interrupted:
+        raise ExCloneError(f"interrupted: {counts['done'] + counts['skipped']} of {len(entries)} "
+                           "targets done; run the same command with --resume to continue; "
+                           f"summary: {summary_path}")
     if failed:
         raise ExCloneError(f"{len(failed)} of {len(entries)} targets failed (first: "
                            f"{failed[0]['target']}: {failed[0]['error']}); the others were "

@@ -9,8 +9,10 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import bpy
@@ -611,3 +613,42 @@ def test_an_interrupted_batch_resumes_and_a_broken_target_is_in_the_summary(tmp_
     summary = json.loads((out / "batch_report.json").read_text())
     assert [entry["status"] for entry in summary["targets"]] == ["done", "done", "failed", "done"]
     assert "its task did not finish" in summary["targets"][2]["error"]
+
+
+def test_ctrl_c_stops_a_batch_with_its_summary_and_resume_continues_it(tmp_path, head):
+    """Ctrl-C (SIGINT to the batch's process group, as a terminal sends it) once the first head
+    is done: the batch stops with one line saying how to continue, the summary lists the first
+    head done and the second interrupted, nothing half-written is left; --resume then skips the
+    first and does the second."""
+    folder = tmp_path / "heads"
+    write_moved_heads(folder, head, {"a_first": (1.0, [0.0, 0.0, 0.0]),
+                                     "b_second": (2.0, [0.0, 1.0, 0.0])})
+    options = ["--target", folder, "--jobs", "1", "--shapes", "jawOpen", "--out-dir", "results",
+               "--no-preview"]
+    env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
+    batch = subprocess.Popen([sys.executable, str(SCRIPT), *map(str, options)], cwd=tmp_path,
+                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                             start_new_session=True)
+    out = tmp_path / "results"
+    deadline = time.monotonic() + 900
+    while not (out / "a_first_exclone.json").exists() and batch.poll() is None:
+        assert time.monotonic() < deadline, "the first target never finished"
+        time.sleep(0.2)
+    time.sleep(1.0)                       # the second target's process has started
+    os.killpg(batch.pid, signal.SIGINT)
+    _, stderr = batch.communicate(timeout=300)
+    assert batch.returncode == 1
+    lines = stderr.splitlines()
+    assert len(lines) == 1 and lines[0].startswith("batch_clone: error: interrupted: 1 of 2 targets "
+                                                   "done; run the same command with --resume"), stderr
+    summary = json.loads((out / "batch_report.json").read_text())
+    assert [(e["status"], e.get("error")) for e in summary["targets"]] == [
+        ("done", None), ("failed", "interrupted")]
+    assert sorted(p.name for p in out.iterdir()) == [
+        "a_first_exclone.blend", "a_first_exclone.json", "batch_report.json"]
+
+    resumed = run_cli(*options, "--resume", cwd=tmp_path)
+    assert resumed.returncode == 0, resumed.stderr
+    summary = json.loads((out / "batch_report.json").read_text())
+    assert [e["status"] for e in summary["targets"]] == ["skipped", "done"]
+    assert (out / "b_second_exclone.json").is_file()
