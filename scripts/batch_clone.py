@@ -640,7 +640,8 @@ def _shared_arguments(args):
 
 
 def _console_line(index, count, entry):
-    outcome = {"done": lambda: f"done, {entry['shape_keys_added']} shape keys",
+    keys = entry.get("shape_keys_added")
+    outcome = {"done": lambda: f"done, {keys} shape key{'' if keys == 1 else 's'}",
                "skipped": lambda: "skipped, done in an earlier run",
                "failed": lambda: f"FAILED: {entry['error']}"}[entry["status"]]()
     return f"[{index + 1}/{count}] {entry['target']}: {outcome} ({entry['seconds']:.1f} s)"
