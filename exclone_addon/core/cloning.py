@@ -460,9 +460,9 @@ def _transferred(fit, deltas):
         fit._transfer = CorrespondedTransfer(system, fit.aligned_source, fit.source_region,
                                              fit.vertex_map, fit.mapped, fit.pairs, fit.weights)
     if fit._rims is None:
-        fit._rims = RimGoals(fit.target_region, fit.aligned_source, fit.source_region,
-                             fit.landmark_names, fit.welded_target.index[fit.target_landmarks],
-                             fit.vertex_map, fit._transfer.system)
+        fit._rims = RimGoals(fit.target_region, fit.source_region, fit.landmark_names,
+                             fit.welded_target.index[fit.target_landmarks], fit.vertex_map,
+                             fit._transfer.system)
     result = fit._transfer(deltas @ fit.rotation.T * fit.scale, correction=fit._rims)
     result[:, fit._transfer.fixed] = 0.0       # also where a fixed vertex was left to follow
     if not np.all(np.isfinite(result)):
