@@ -33,6 +33,11 @@ into another. Cases:
 - memory_growth (not with --quick): the same clone onto heads of MEMORY_SIZES vertices (and
   200,000 with --large), each size in its own subprocess (`--case size_N`): peak RSS growth, KiB
   per target vertex, and the growth per vertex added from one size to the next, before and now;
+- ict_identity (needs the shared ICT identity model): a new ICT face with a known answer
+  (remeshed, moved), the library's face region cloned onto it with automatic landmarks: mean and
+  95th-percentile correspondence error against the true places, the transfer error beside the
+  exact registration's and trimesh nricp_sumner's (given the engine's landmarks), and the
+  expression measures;
 - compare: with ONE set of automatic landmarks (the engine's own, from a first clone) and the same
   schedule, the reduced vs the augmented formulation, and trimesh.registration.nricp_sumner on
   the same source region, target region and landmarks; all errors by one metric (below).
@@ -75,7 +80,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 from exclone_addon.core import data  # noqa: E402
 from exclone_addon.core.cloning import (CloneSettings, clone_expressions,  # noqa: E402
-                                        fit_faces, transfer_expressions)
+                                        fit_faces, fit_registered, transfer_expressions)
 from exclone_addon.core import mesh as mesh_module  # noqa: E402
 from exclone_addon.core.library import load_library, load_obj_folder  # noqa: E402
 from exclone_addon.core.mesh import (PolyMesh, diagonal, read_obj,  # noqa: E402
@@ -290,7 +295,8 @@ def run_case(name):
         "same_output_cold_warm_traced": bool(np.array_equal(cold.deltas, warm.deltas)
                                              and np.array_equal(cold.deltas, traced.deltas)),
         # how the clone reads on the target: lid and lip gaps, stretch, flips, motion outside
-        "expression_measures": summary(measure_clone(target, cold)),
+        "expression_measures": summary(measure_clone(target, cold, source=source,
+                                                     source_deltas=deltas)),
     }
 
 
@@ -557,6 +563,102 @@ def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
     }
 
 
+IDENTITY_SEED = 1             # the new ICT identity of the known-answer case
+
+
+def run_identity_case(seed=IDENTITY_SEED):
+    """A new face with a known answer: an ICT identity (the identity model's first 30 modes,
+    weights drawn from a standard normal with `seed`), its face region remeshed to about 7,000
+    vertices and moved by a random similarity (blender_tests/helpers/ground_truth.py), the
+    library's face region cloned onto it with AUTOMATIC landmarks. Correspondence error: each
+    source vertex's registered position against its true place (the identity's own vertex,
+    moved), / the target's diagonal; transfer error: ||clone - truth||_F / ||truth||_F averaged
+    over the measurable expressions, beside the same transfer from the exact registration and
+    from trimesh's nricp_sumner given the engine's landmarks."""
+    from blender_tests.helpers import ground_truth as gt
+    library = load_library()
+    identities = np.load(data_path_identities())
+    weights = np.random.default_rng(seed).standard_normal(len(identities["deltas"]))
+    face = library.mesh.vertices + np.tensordot(weights, identities["deltas"].astype(float), 1)
+    case = gt.make_case(face, (library.mesh.loop_totals, library.mesh.loop_vertices),
+                        library.names, library.deltas, seed=seed)
+    source, deltas = face_region(library)
+    target, truth = case["target_mesh"], case["truth_deltas"]
+    exact = gt.apply_similarity(face[:FACE_VERTICES], *case["similarity"])
+    region = np.unique(source.triangles())
+    diag = diagonal(target.vertices)
+    cpu = time.process_time()
+    clone = clone_expressions(source, deltas, library.names, target)
+    cpu = round(time.process_time() - cpu, 3)
+
+    def transfer_error(registered):
+        result = transfer_expressions(fit_registered(source, target, registered), deltas,
+                                      library.names)
+        return round(float(np.nanmean(gt.relative_error(result.deltas, truth))), 5)
+
+    def correspondence(registered):
+        error = np.linalg.norm(registered[region] - exact[region], axis=1) / diag
+        return {"mean_rel": round(float(error.mean()), 6),
+                "p95_rel": round(float(np.quantile(error, 0.95)), 6)}
+
+    engine_error = round(float(np.nanmean(gt.relative_error(clone.deltas, truth))), 5)
+    exact_error = transfer_error(exact)
+    out = {
+        "case": f"ICT identity (seed {seed}) remeshed and moved, library face region onto it",
+        "target_vertices": int(len(target.vertices)),
+        "cpu_seconds": cpu,
+        "landmark_count": clone.quality["landmark_count"],
+        "engine": {"correspondence": correspondence(clone.registered_source),
+                   "transfer_error": engine_error},
+        "exact_registration": {"transfer_error": exact_error},
+        "engine_over_exact_transfer_error": round(engine_error / exact_error, 3),
+        "bars": {"correspondence_mean_rel": 0.003, "correspondence_p95_rel": 0.008,
+                 "engine_over_exact_transfer_error": 1.3},
+        "expression_measures": summary(measure_clone(target, clone, source=source,
+                                                     source_deltas=deltas)),
+    }
+    try:
+        registered = trimesh_registered(source, target, clone.source_landmarks,
+                                        clone.target_landmarks)
+        out["trimesh_nricp_sumner"] = {"correspondence": correspondence(registered),
+                                       "transfer_error": transfer_error(registered),
+                                       "landmarks": "the engine's automatic ones, as targets"}
+    except ImportError:
+        out["trimesh_nricp_sumner"] = None
+    return out
+
+
+def data_path_identities():
+    """The shared ICT identity model (not shipped with the extension)."""
+    path = ROOT.parent / "shared" / "data" / "ict-facekit" / "identities.npz"
+    if not path.exists():
+        raise SystemExit(f"bench_clone: the identity case needs {path}")
+    return path
+
+
+def trimesh_registered(source, target, src_lm, tgt_lm):
+    """(n_source, 3) the source registered onto the target by trimesh's nricp_sumner (its
+    default steps, the engine's landmarks, the same similarity pre-alignment)."""
+    import trimesh
+    import trimesh.registration
+    src_region, tgt_region = regions(source, target, src_lm, tgt_lm)
+    rot, scale, shift = similarity_transform(source.vertices[src_lm], target.vertices[tgt_lm])
+    aligned = source.vertices @ rot.T * scale + shift
+    ids = np.unique(src_region)
+    local = np.full(len(source.vertices), -1)
+    local[ids] = np.arange(len(ids))
+    source_mesh = trimesh.Trimesh(aligned[ids], local[src_region], process=False)
+    target_mesh = trimesh.Trimesh(target.vertices, tgt_region, process=False)
+    threshold = CloneSettings().max_distance * diagonal(target.vertices) / source_mesh.scale
+    registered = trimesh.registration.nricp_sumner(
+        source_mesh, target_mesh, source_landmarks=local[src_lm],
+        target_positions=target.vertices[tgt_lm], steps=TRIMESH_STEPS,
+        distance_threshold=threshold, use_faces=False)
+    full = aligned.copy()
+    full[ids] = registered
+    return full
+
+
 # ---------------------------------------------------------------------------- driver
 
 def machine_info():
@@ -660,6 +762,8 @@ def main(argv=None):
             result = run_cli_case()
         elif args.case in CHARACTER_FILES:
             result = run_character_case(args.case)
+        elif args.case == "ict_identity":
+            result = run_identity_case()
         elif args.case.startswith("size_"):
             result = run_sized_case(args.case)
         else:
@@ -670,7 +774,7 @@ def main(argv=None):
     started = time.perf_counter()
     load_before = os.getloadavg()
     names = ["face"] if args.quick else ["face", "head", "face_dense_target", "cli_obj_folder",
-                                         *CHARACTER_FILES]
+                                         "ict_identity", *CHARACTER_FILES]
     cases = {}
     for name in names:
         print(f"bench_clone: case {name} ...", file=sys.stderr, flush=True)
