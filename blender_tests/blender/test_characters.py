@@ -44,21 +44,14 @@ def _load(path):
     return {obj.name: obj for obj in bpy.context.scene.objects}
 
 
-def _activate(obj):
-    for other in bpy.context.scene.objects:
-        other.select_set(False)
-    bpy.context.view_layer.objects.active = obj
-
-
-def _not_the_face(objects, face_name):
-    """An object of the character other than the face's (its empty parent, else a small mesh):
-    the operators must find the face from any of them."""
+def _select_the_character(objects, face_name):
+    """Every mesh selected (the character, where it has no hierarchy) and active an object other
+    than the face's (its empty parent, else another mesh): the face must be found from any."""
+    for obj in objects.values():
+        obj.select_set(obj.type == 'MESH')
     empties = [obj for obj in objects.values() if obj.type == 'EMPTY' and obj.children]
-    if empties:
-        return empties[0]
-    others = [obj for obj in objects.values() if obj.type == 'MESH' and obj.name != face_name
-              and (obj.parent is not None or obj.children)]
-    return others[0] if others else objects[face_name]
+    others = [obj for obj in objects.values() if obj.type == 'MESH' and obj.name != face_name]
+    bpy.context.view_layer.objects.active = (empties + others + [objects[face_name]])[0]
 
 
 def _world_key(obj, name):
@@ -82,7 +75,7 @@ def test_generate_arkit_on_a_whole_character(file_name, shared_data, capfd):
     objects = _load(shared_data / "characters" / file_name)
     face_name = FACE_OBJECT[file_name]
     face_obj = objects[face_name]
-    _activate(_not_the_face(objects, face_name))
+    _select_the_character(objects, face_name)
     assert bpy.ops.exclone.generate_arkit_shapes() == {'FINISHED'}
     message = _last_report(capfd)
     region = re.search(rf"face found on '{face_name}' \(head region: ([\d,]+) of ([\d,]+) "
