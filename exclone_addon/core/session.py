@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from . import data, eyes, face_models
+from . import data, eyes, face_models, threads
 from .eyes import EyeGeometry
 from .errors import ExCloneError
 from .retarget import WeightSolver, map_blendshapes, refine_take
@@ -245,7 +245,10 @@ class FaceTrackingSession:
         """One frame (8-bit BGR) at `timestamp` seconds -> FrameResult. name: what an error
         message calls the frame (e.g. capture.Frame.name). A frame that is not an image, is too
         small to hold a face or differs in size from the take's first is an ExCloneError."""
-        image = face_models.checked_image(image_bgr, name)
+        with threads.step_threads():
+            return self._step(face_models.checked_image(image_bgr, name), timestamp, name)
+
+    def _step(self, image, timestamp, name):
         self._use_image_size(image.shape[1], image.shape[0], name)
         stage_ms = dict.fromkeys(STAGES, 0.0)
         points, detected = self._find_face(image, timestamp, stage_ms)
