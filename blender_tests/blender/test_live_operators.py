@@ -450,6 +450,30 @@ def test_calibrate_and_stop_act_on_the_running_take(ict, video):
         take.close()
 
 
+def test_calibrate_during_a_take_on_the_worker_thread_restarts_the_calibration(ict, video):
+    add_avatar(ict)
+    take = webcam_take.start_take(bpy.context, source_type='VIDEO', filepath=str(video))
+    webcam_take.running = take
+    take.start_worker()
+    statuses = []
+    try:
+        while take.tick() and not take.session.calibrated:
+            time.sleep(0.001)
+        assert bpy.ops.exclone.calibrate_neutral() == {'FINISHED'}
+        assert take.status == "calibrating: hold a neutral face"
+        applied = take.frames_read
+        while take.tick():
+            if take.frames_read != applied:
+                applied = take.frames_read
+                statuses.append(take.status)
+            time.sleep(0.001)
+    finally:
+        take.close()
+    # the worker took the request up at its next frame: a new calibration from its first frame
+    assert f"calibrating 1/{VIDEO_FPS}: hold a neutral face" in statuses, statuses
+    assert take.end_reason == "the source ended" and take.frames_read == 44
+
+
 def test_refine_take_rewrites_the_takes_keyframes_as_one_undo_step(ict, video, capfd):
     with pytest.raises(RuntimeError, match="Record a take first"):
         bpy.ops.exclone.refine_take()
