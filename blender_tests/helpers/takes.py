@@ -3,7 +3,10 @@
 - the synthetic ICT take: the bundled ICT head posed with known expression weights and a known
   head rotation, sampled where the canonical face's 468 points lie on it, projected through a
   known camera with pixel noise (checks the solver, not the image models);
-- the astronaut photograph (skimage, public domain) moved by known 2D motions.
+- the astronaut photograph (skimage, public domain) moved by known 2D motions;
+- rendered takes: an ICT-topology head (the bundled one or an ICT identity) posed with known
+  weights and head turns, rendered in background Blender by scripts/render_faces.py (needs bpy;
+  cached in the temp directory), tracked through the image models by FaceTrackingSession.step.
 """
 import functools
 import hashlib
