@@ -52,7 +52,8 @@ fi
 # Face detector + landmark models (Apache-2.0), taken from the mediapipe wheel: no mediapipe import at
 # run time and no network after setup.
 MODELS=exclone_addon/models
-if [[ ! -f $MODELS/face_landmark.tflite || ! -f $MODELS/face_detection_short_range.tflite ]]; then
+if [[ ! -f $MODELS/face_landmark.tflite || ! -f $MODELS/face_detection_short_range.tflite
+      || ! -f $MODELS/iris_landmark.tflite ]]; then
     mkdir -p .cache/wheels
     ls .cache/wheels/mediapipe-0.10.21-*.whl >/dev/null 2>&1 || \
         pip_run .venv/bin/python download --quiet --no-deps \

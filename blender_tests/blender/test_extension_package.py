@@ -68,7 +68,8 @@ def test_zip_bundles_scipy_opencv_and_cholespy_for_both_pythons_but_never_numpy(
 
 def test_zip_has_face_models_and_no_caches(linux_zip):
     names = set(zipfile.ZipFile(linux_zip).namelist())
-    for model in ("face_landmark.tflite", "face_detection_short_range.tflite", "LICENSE-mediapipe-Apache-2.0.txt"):
+    for model in ("face_landmark.tflite", "face_detection_short_range.tflite", "iris_landmark.tflite",
+                  "LICENSE-mediapipe-Apache-2.0.txt"):
         assert f"models/{model}" in names
     assert "__init__.py" in names and "blender_manifest.toml" in names
     assert not [n for n in names if "__pycache__" in n or n.endswith(".pyc") or n.startswith("tests/")]
