@@ -433,7 +433,9 @@ def run(args):
     timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
     timings["clone_total"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    measures = measure_clone(face.head.mesh, result)
+    # beside the source, so that the stretch is counted beyond the source's own (excess_stretch)
+    measures = measure_clone(face.head.mesh, result, source=inputs.source.mesh,
+                             source_deltas=inputs.source.deltas)
     # from here on, the face's object's own numbering and coordinates
     result.deltas = workflow.face_object_deltas(target.obj, face, result.deltas)
     result.target_landmarks = face.head.own_ids(result.target_landmarks)

@@ -310,7 +310,8 @@ def test_default_run_writes_blend_report_and_preview(default_run, head):
     for name in ("demo_head_exclone.blend", "demo_head_exclone.json", "demo_head_exclone.png"):
         assert name in result.stdout
     assert "shape keys added" in result.stdout.splitlines()[-1]
-    assert re.search(r"^measures: blink gap L -?\d+% R -?\d+%, stretch [\d.]+x, \d+ flipped$",
+    assert re.search(r"^measures: blink gap L -?\d+% R -?\d+%, stretch [\d.]+x the source's, "
+                     r"\d+ flipped$",
                      result.stdout, re.MULTILINE), result.stdout
 
 
@@ -344,6 +345,8 @@ def test_default_run_report(default_run):
     assert 0 <= measures["summary"]["eyeBlink_L_gap"] < 1
     assert measures["summary"]["eyeBlink_L_other_eye_gap"] == pytest.approx(1.0, abs=0.1)
     assert measures["summary"]["jawOpen_lip_gap"] > 0
+    # measured beside the source: the stretch beyond the source's own
+    assert measures["summary"]["worst_excess_stretch"] >= 1.0
 
 
 def test_default_run_preview_shows_rendered_tiles(default_run):

@@ -314,4 +314,6 @@ def test_a_real_clone_onto_the_demo_head_is_measured():
     assert summary["eyeBlink_L_gap"] == found["eyeBlink_L"]["eyelid_gap_left"]
     assert summary["worst_edge_stretch"] == max(row["edge_stretch"] for row in found.values())
     clause = measures_clause(summary)
-    assert clause.startswith("blink gap L ") and "stretch" in clause and "flipped" in clause
+    assert clause.startswith("blink gap L ") and "flipped" in clause
+    # measured beside the source: the clause reads the excess stretch, not the raw one
+    assert f"stretch {summary['worst_excess_stretch']:.1f}x the source's" in clause

@@ -220,7 +220,7 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
                 target, [key_names[name] for name in wanted], result,
                 replace_existing=self.replace_existing, still=self.parts == 'STILL')
             measured = measures_clause(workflow.measure(face_object.name, head.mesh, result,
-                                                        wanted, deltas))
+                                                        wanted, deltas, source))
             self.report({'INFO'}, summary(added, replaced, skipped + also_skipped,
                                           time.perf_counter() - started, result.quality)
                         + f"; {target.face.description()}"

@@ -2,6 +2,7 @@
 import bpy
 
 from ..core.errors import ExCloneError
+from ..core.reports import stretch_phrase
 from . import character
 from . import landmarks as stored_landmarks
 from . import workflow
@@ -128,7 +129,7 @@ def _draw_measures(layout):
     column.label(text=f"jawOpen: lips {_percent(jaw, 1)} of the face apart")
     column.label(text=f"with mouthClose: {_percent(closed, 1)}")
     if found["worst_edge_stretch"] is not None:
-        column.label(text=f"stretch {found['worst_edge_stretch']:.1f}x, "
+        column.label(text=f"{stretch_phrase(found)}, "
                           f"{found['worst_flipped_triangles']} flipped")
 
 

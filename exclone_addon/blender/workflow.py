@@ -367,10 +367,15 @@ def still_parts_mask(target_mesh, target_landmarks):
 last_measures = {}
 
 
-def measure(target_name, target_mesh, result, names, deltas):
+def measure(target_name, target_mesh, result, names, deltas, source=None):
     """The expression measures of the shape keys a Clone wrote (names, deltas), kept as the
-    last run's for the panel; returns their summary."""
-    found = summary(measure_clone(target_mesh, result, names, deltas))
+    last run's for the panel; returns their summary. source: the clone's source (an
+    ExpressionLibrary), for the stretch beyond the source's own (excess_stretch)."""
+    source_deltas = None if source is None else \
+        source.deltas[[source.names.index(name) for name in names]]
+    found = summary(measure_clone(target_mesh, result, names, deltas,
+                                  source=None if source is None else source.mesh,
+                                  source_deltas=source_deltas))
     last_measures.clear()
     last_measures.update(target=target_name, summary=found)
     return found

@@ -26,14 +26,25 @@ def summary(added, replaced, skipped, seconds, quality):
 
 
 def measures_clause(summary):
-    """The expression measures in one short clause, e.g. "blink gap L 5% R 8%, stretch 3.4x,
-    11 flipped" from expression_measures.summary ("" if nothing was measured)."""
+    """The expression measures in one short clause, e.g. "blink gap L 5% R 8%, stretch 2.1x the
+    source's, 11 flipped" from expression_measures.summary ("" if nothing was measured). The
+    stretch is the excess over the source's own where the source was measured beside the clone
+    (a jawOpen stretches the source's lips too), else the raw edge stretch."""
     parts = []
     gaps = [(side, summary.get(f"eyeBlink_{side}_gap")) for side in ("L", "R")]
     gaps = [f"{side} {100 * gap:.0f}%" for side, gap in gaps if gap is not None]
     if gaps:
         parts.append("blink gap " + " ".join(gaps))
     if summary.get("worst_edge_stretch") is not None:
-        parts.append(f"stretch {summary['worst_edge_stretch']:.1f}x")
+        parts.append(stretch_phrase(summary))
         parts.append(f"{summary['worst_flipped_triangles']} flipped")
     return ", ".join(parts)
+
+
+def stretch_phrase(summary):
+    """"stretch 2.1x the source's" (the worst excess stretch) where expression_measures.summary
+    has it, else "stretch 3.4x" (the worst raw edge stretch)."""
+    excess = summary.get("worst_excess_stretch")
+    if excess is not None:
+        return f"stretch {excess:.1f}x the source's"
+    return f"stretch {summary['worst_edge_stretch']:.1f}x"
