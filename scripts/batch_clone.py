@@ -58,7 +58,8 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 from exclone_cli import (Outputs, Parser, check_folder_writable, check_output_writable,  # noqa: E402
                          number, run_main)
-from exclone_addon.blender import character, files, mesh_io, preview, workflow  # noqa: E402
+from exclone_addon.blender import (character, character_keys, files, mesh_io, preview,  # noqa: E402
+                                     workflow)
 from exclone_addon.core import data, reports  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
@@ -357,6 +358,7 @@ def write_outputs(outputs, paths, target, result, timings):
     paths or None, preview engine or None)."""
     clock = time.perf_counter()
     added, replaced, skipped = mesh_io.write_shape_keys(target.obj, result.names, result.deltas)
+    followed = follow_face_keys(target, added, result)
     timings["write_shape_keys"] = time.perf_counter() - clock
     clock = time.perf_counter()
     outputs.write(paths.result, lambda path: files.save_result(path, target.objects))
@@ -375,12 +377,24 @@ def write_outputs(outputs, paths, target, result, timings):
             target.face.head.vertex_ids], added)          # framing the head
         outputs.write(paths.preview, lambda path: _write_png(path, sheet))
         timings["preview"] = time.perf_counter() - clock
-    return added, replaced, skipped, exported, engine
+    return added, replaced, skipped, exported, engine, followed
+
+
+def follow_face_keys(target, names, result):
+    """The character's other objects (eyes, brows, lashes, teeth, tongue) get the face's new
+    keys `names` as the operators give them (character_keys.follow_character); result's
+    landmarks still in the head's numbering. Returns (the operators' clause, {object: the
+    ExClone keys it holds})."""
+    character_target = workflow.Target(target.objects, target.face, None)
+    clause = character_keys.follow_character(character_target, names, result)
+    keyed = {obj.name: len(set(obj.get(character_keys.MADE, [])) & set(names))
+             for obj in character_target.others()}
+    return clause, keyed
 
 
 def build_report(args, paths, inputs, result, written, timings):
     source, target = inputs.source, inputs.target
-    added, _, skipped, exported, engine = written
+    added, _, skipped, exported, engine, (followed, keyed) = written
     return {
         "inputs": {"source": source.description, "target": target.description,
                    "face": target.face.description(),
@@ -402,7 +416,8 @@ def build_report(args, paths, inputs, result, written, timings):
                     "export_dir": args.export_dir,
                     "exported_files": len(exported) if exported else 0,
                     "target_object": target.obj.name,
-                    "shape_keys_added": added, "shape_keys_skipped_existing": skipped},
+                    "shape_keys_added": added, "shape_keys_skipped_existing": skipped,
+                    "other_objects": followed, "other_object_keys": keyed},
         "versions": {"blender": bpy.app.version_string, "numpy": np.__version__,
                      "python": platform.python_version()},
     }
@@ -438,16 +453,16 @@ def run(args):
                              source_deltas=inputs.source.deltas)
     # from here on, the face's object's own numbering and coordinates
     result.deltas = workflow.face_object_deltas(target.obj, face, result.deltas)
-    result.target_landmarks = face.head.own_ids(result.target_landmarks)
     timings["measures"] = time.perf_counter() - clock
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings)
+        result.target_landmarks = face.head.own_ids(result.target_landmarks)
         timings["total"] = time.perf_counter() - started
         report = build_report(args, paths, inputs, result, written, timings)
         report["measures"] = {"summary": summary(measures), "expressions": measures}
         _write_json(outputs, paths.report, report)
         outputs.commit()
-    added, replaced, skipped, exported, _ = written
+    added, replaced, skipped, exported, _, (followed, _) = written
     print(f"result:  {paths.result}\nreport:  {paths.report}"
           + (f"\npreview: {paths.preview}" if paths.preview else "")
           + (f"\nexport:  {paths.export_dir} ({len(exported)} OBJs)" if exported else ""))
@@ -455,7 +470,8 @@ def run(args):
     rendered = f", preview {timings['preview']:.1f} s" if paths.preview else ""
     print(f"{target.face.description()}\n{target.obj.name}: "
           + reports.summary(added, replaced, skipped, timings["total"], result.quality)
-          + f" (cloning {timings['clone_total']:.1f} s{rendered})")
+          + f" (cloning {timings['clone_total']:.1f} s{rendered})"
+          + (f"; {followed}" if followed else ""))
     return report
 
 

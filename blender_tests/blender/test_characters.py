@@ -133,3 +133,26 @@ def test_the_command_line_picks_the_character_of_a_glb(shared_data, tmp_path):
     assert re.fullmatch(r"face found on 'Body' \(head region: [\d,]+ of 14,517 vertices\)",
                         report["inputs"]["face"])
     assert report["counts"]["shape_keys_added"] == 2
+
+
+def test_the_command_line_keys_the_characters_other_objects(shared_data, tmp_path):
+    """The CLI gives the eyes, brows, teeth... the face's keys as Clone does (one rule:
+    character_keys.follow_character), says so per object in its report, and the .glb it writes
+    carries them."""
+    out = tmp_path / "male.glb"
+    code = batch_clone.main(["--target", str(shared_data / "characters" / "mh_male_body.glb"),
+                             "--shapes", "jawOpen,eyeLookOut_L", "--no-preview",
+                             "--out", str(out)])
+    assert code == 0
+    report = json.loads(out.with_suffix(".json").read_text())["outputs"]
+    assert report["shape_keys_added"] == ["jawOpen", "eyeLookOut_L"]
+    keyed = report["other_object_keys"]
+    assert keyed["Teeth"] >= 1 and keyed["Eye_L"] >= 1, keyed
+    assert "Teeth" in report["other_objects"]
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    objects = _load(out)
+    assert {"jawOpen", "eyeLookOut_L"} <= set(objects["Body"].data.shape_keys.key_blocks.keys())
+    teeth_keys = objects["Teeth"].data.shape_keys
+    assert teeth_keys is not None and "jawOpen" in teeth_keys.key_blocks
+    assert np.abs(_world_key(objects["Teeth"], "jawOpen")).max() > 0.0
+    assert "eyeLookOut_L" in objects["Eye_L"].data.shape_keys.key_blocks
