@@ -156,3 +156,24 @@ def test_the_command_line_keys_the_characters_other_objects(shared_data, tmp_pat
     assert teeth_keys is not None and "jawOpen" in teeth_keys.key_blocks
     assert np.abs(_world_key(objects["Teeth"], "jawOpen")).max() > 0.0
     assert "eyeLookOut_L" in objects["Eye_L"].data.shape_keys.key_blocks
+
+
+def test_auto_landmarks_on_a_body_are_on_its_head(shared_data):
+    """Auto Landmarks with the whole body active finds the face as Clone does and places the
+    named landmarks on the face's object, inside its head region: the nose tip above the mouth
+    corners, in the top 30% of the body's height."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    objects = _load(shared_data / "characters" / "mh_male_body.blend")
+    body = objects["Body"]
+    bpy.context.view_layer.objects.active = body
+    body.select_set(True)
+    assert bpy.ops.exclone.auto_landmarks() == {'FINISHED'}
+    ids = {name: int(vertex) for name, vertex in body["exclone_landmarks"].items()}
+    assert {"nose_tip", "mouth_corner_left", "mouth_corner_right"} <= set(ids)
+    face = workflow.character_face(character.parts([body]))
+    assert set(ids.values()) <= set(face.head.vertex_ids.tolist())
+    world = character.world_mesh(body).vertices
+    up = np.array([0.0, 0.0, 1.0])       # the MakeHuman body stands upright along +Z
+    corners = world[[ids["mouth_corner_left"], ids["mouth_corner_right"]]] @ up
+    assert world[ids["nose_tip"]] @ up > corners.max()
+    assert world[ids["nose_tip"]] @ up > world[:, 2].max() - 0.3 * np.ptp(world[:, 2])

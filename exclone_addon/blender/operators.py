@@ -372,12 +372,19 @@ class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
     @reporting
     def execute(self, context):
         started = time.perf_counter()
+        target = workflow.target_object(context)
+        sources = [obj for obj in _landmark_objects(context) if obj is not target]
         found = {}   # every object's landmarks first: an error leaves all of them as they were
-        for obj in _landmark_objects(context):
+        for obj in sources:
             try:
                 found[obj] = stored_landmarks.detect(workflow.basis_mesh(obj, obj.name))
             except Exception as exc:
                 return failed(self, exc, about=obj.name)
+        try:        # the target is a character: its face found, landmarks on the head (as Clone)
+            face_object, found_on_face = workflow.target_landmarks(context, exclude=sources)
+        except Exception as exc:
+            return failed(self, exc, about=target.name)
+        found[face_object] = found_on_face
         for obj, landmarks in found.items():
             stored_landmarks.store(obj, landmarks, automatic=True)
         counts = ", ".join(f"{len(marks)} on '{obj.name}'" for obj, marks in found.items())

@@ -20,7 +20,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..core import character as core_character
-from ..core.cloning import CloneSettings, fit_faces, transfer_expressions
+from ..core.cloning import CloneSettings, fit_faces, found_landmarks, transfer_expressions
 from ..core.errors import Cancelled, ExCloneError
 from ..core.expression_measures import measure_clone, summary
 from ..core import data
@@ -219,6 +219,18 @@ def target_of(objects, source, source_obj=None):
     landmarks = landmark_pairs(source, source_obj, face_object,
                                basis_mesh(face_object, "target"))
     return Target(objects, *in_head(face, parts[face.part], landmarks))
+
+
+def target_landmarks(context, exclude=()):
+    """(the face's object, its automatic landmarks {name: own vertex id}) of the target
+    character, found as Clone finds them: on the found face's head region with its guide.
+    exclude: objects that are no part of the character (the source). Raises ExCloneError."""
+    context.view_layer.update()       # objects moved by a script: their matrix_world
+    objects = character.character_objects(target_object(context), context.selected_objects,
+                                          exclude=exclude)
+    face = character_face(character.parts(objects))
+    names, ids = found_landmarks(face.head.mesh, "target", face_guide=face.guide)
+    return objects[face.part], dict(zip(names, (int(i) for i in face.head.own_ids(ids))))
 
 
 def in_head(face, part, landmarks):

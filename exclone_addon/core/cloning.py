@@ -233,11 +233,12 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks, face_guide
             np.array([tgt_ids[tgt_names.index(n)] for n in common], dtype=np.int64), common)
 
 
-def found_landmarks(mesh, what="mesh"):
+def found_landmarks(mesh, what="mesh", face_guide=None):
     """The automatic landmarks of a PolyMesh as a fit finds them: (names, vertex ids in the
-    mesh's own numbering). ExCloneError if the face cannot be found."""
+    mesh's own numbering); with face_guide, the mesh is a found face's head region (as the fit's
+    target). ExCloneError if the face cannot be found."""
     weld = _welded_surface(mesh, what)
-    names, ids = _found(weld.surface)
+    names, ids = _found(weld.surface, face_guide)
     return names, weld.originals[np.asarray(ids, dtype=np.int64)]
 
 
