@@ -10,7 +10,8 @@ import pytest
 
 import bpy
 
-from exclone_addon.blender import character, workflow
+from exclone_addon.blender import character, mesh_io, workflow
+from exclone_addon.blender import landmarks as stored_landmarks
 from exclone_addon.core.library import arkit_blendshapes
 from scripts import batch_clone
 
@@ -168,7 +169,7 @@ def test_auto_landmarks_on_a_body_are_on_its_head(shared_data):
     bpy.context.view_layer.objects.active = body
     body.select_set(True)
     assert bpy.ops.exclone.auto_landmarks() == {'FINISHED'}
-    ids = {name: int(vertex) for name, vertex in body["exclone_landmarks"].items()}
+    ids = {name: int(vertex) for name, vertex in stored_landmarks.stored(body).items()}
     assert {"nose_tip", "mouth_corner_left", "mouth_corner_right"} <= set(ids)
     face = workflow.character_face(character.parts([body]))
     assert set(ids.values()) <= set(face.head.vertex_ids.tolist())
@@ -177,3 +178,21 @@ def test_auto_landmarks_on_a_body_are_on_its_head(shared_data):
     corners = world[[ids["mouth_corner_left"], ids["mouth_corner_right"]]] @ up
     assert world[ids["nose_tip"]] @ up > corners.max()
     assert world[ids["nose_tip"]] @ up > world[:, 2].max() - 0.3 * np.ptp(world[:, 2])
+
+
+def test_edited_source_landmarks_pair_with_the_bodys_head(shared_data):
+    """Landmarks edited on the source only: the body's side is found as Clone finds it (on its
+    head region), so the pairs hold (the whole-body path found 1 landmark and failed)."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    body = _load(shared_data / "characters" / "mh_male_body.blend")["Body"]
+    source = workflow.library_source()
+    source_obj = mesh_io.object_from_mesh("source", source.mesh)
+    automatic = dict(zip(source.automatic_landmarks[0],
+                         (int(i) for i in source.automatic_landmarks[1])))
+    stored_landmarks.store(source_obj, automatic, automatic=True)
+    edited = dict(automatic, nose_tip=int(source.mesh.triangles()[0][0]))
+    stored_landmarks.store(source_obj, edited, automatic=False)
+    target = workflow.target_of([body], source, source_obj)
+    assert target.face_object is body and target.face.guide is not None
+    assert len(target.landmarks["target"]) >= 10
+    assert max(target.landmarks["target"]) < len(target.face.head.vertex_ids)   # head numbering

@@ -147,10 +147,11 @@ def basis_mesh(obj, role):
     return mesh
 
 
-def landmark_pairs(source, source_obj, target_obj, target_mesh):
+def landmark_pairs(source, source_obj, target_obj, target_mesh, target_face):
     """None (the engine's automatic, soft landmarks) unless a side carries edited landmarks; then
     {"source": ids, "target": ids} of the names both sides have, as hard constraints.
-    source_obj: the object `source` was read from (None: the built-in library).
+    source_obj: the object `source` was read from (None: the built-in library); target_face:
+    the target's CharacterFace (where the target's automatic landmarks are found).
     Raises ExCloneError for stale, off-surface or too few landmarks."""
     sides = [(source_obj, "source"), (target_obj, "target")]
     for obj, role in sides:
@@ -162,8 +163,9 @@ def landmark_pairs(source, source_obj, target_obj, target_mesh):
     def ids_of(obj, mesh):
         if obj is None:
             return dict(zip(source.automatic_landmarks[0], source.automatic_landmarks[1].tolist()))
-        return stored_landmarks.stored(obj) if stored_landmarks.IDS in obj \
-            else stored_landmarks.detect(mesh)
+        if stored_landmarks.IDS in obj:
+            return stored_landmarks.stored(obj)
+        return face_landmarks(target_face) if obj is target_obj else stored_landmarks.detect(mesh)
 
     src, tgt = ids_of(source_obj, source.mesh), ids_of(target_obj, target_mesh)
     common = [name for name in src if name in tgt]
@@ -217,7 +219,7 @@ def target_of(objects, source, source_obj=None):
         face = core_character.whole(parts[marked[0]], marked[0])
     face_object = objects[face.part]
     landmarks = landmark_pairs(source, source_obj, face_object,
-                               basis_mesh(face_object, "target"))
+                               basis_mesh(face_object, "target"), face)
     return Target(objects, *in_head(face, parts[face.part], landmarks))
 
 
@@ -229,8 +231,14 @@ def target_landmarks(context, exclude=()):
     objects = character.character_objects(target_object(context), context.selected_objects,
                                           exclude=exclude)
     face = character_face(character.parts(objects))
+    return objects[face.part], face_landmarks(face)
+
+
+def face_landmarks(face):
+    """{name: vertex id of the face's object} of a CharacterFace: its automatic landmarks as
+    Clone finds them, on its head region with its guide. Raises ExCloneError."""
     names, ids = found_landmarks(face.head.mesh, "target", face_guide=face.guide)
-    return objects[face.part], dict(zip(names, (int(i) for i in face.head.own_ids(ids))))
+    return dict(zip(names, (int(i) for i in face.head.own_ids(ids))))
 
 
 def in_head(face, part, landmarks):
