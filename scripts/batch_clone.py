@@ -15,6 +15,8 @@ the face) and their summary, which the console shows on its "measures:" line.
 
 --out x.glb or x.fbx writes the target through Blender's own glTF or FBX exporter instead of a
 .blend, its shape keys as morph targets (glTF) or blend shapes (FBX) with the same names.
+A character's other objects (eyes, brows, lashes, teeth, tongue) get the new keys as Clone gives
+them (driven by the face's keys in a .blend); the report's outputs.other_objects says what each got.
 
 Input files are only read (see exclone_addon/blender/files.py). Every output path is checked
 before any work; an output that exists is replaced only with --overwrite (--resume: a target
