@@ -618,6 +618,13 @@ def test_an_interrupted_batch_resumes_and_a_broken_target_is_in_the_summary(tmp_
     assert "its task did not finish" in summary["targets"][2]["error"]
 
 
+def _terminal_sigint():
+    """Ctrl-C's default action in the batch, as a shell started from a terminal gives it: a
+    child inherits an ignored SIGINT, and Blender code run earlier in this test process may
+    have set it so."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_stops_a_batch_with_its_summary_and_resume_continues_it(tmp_path, head):
     """Ctrl-C (SIGINT to the batch's process group, as a terminal sends it) once the first head
     is done: the batch stops with one line saying how to continue, the summary lists the first
@@ -631,7 +638,7 @@ def test_ctrl_c_stops_a_batch_with_its_summary_and_resume_continues_it(tmp_path,
     env = dict(os.environ, PYTHONDONTWRITEBYTECODE="1")
     batch = subprocess.Popen([sys.executable, str(SCRIPT), *map(str, options)], cwd=tmp_path,
                              env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                             start_new_session=True)
+                             start_new_session=True, preexec_fn=_terminal_sigint)
     out = tmp_path / "results"
     deadline = time.monotonic() + 900
     while not (out / "a_first_exclone.json").exists() and batch.poll() is None:
