@@ -28,7 +28,9 @@ REACHED = {
     "mh_head_lowpoly.glb": ("Head", None, 1.84, 0),
 }
 GAP_MARGIN = 0.05          # of the open height
-STRETCH_MARGIN = 1.1       # x the reached excess stretch
+STRETCH_MARGIN = 1.25      # x the reached excess stretch: the worst edge is a tail figure, and the
+                           # same code reached 2.05x / 2.41x (stylised head) and 3.33x / 2.98x (male
+                           # body) with numpy 1.26 / numpy 2 (rounding amplified by the fit's rules)
 FLIP_MARGIN = 3
 OTHER_EYE = 0.05           # the other eye's gap stays within this of its rest (1)
 LIPS_PART = 0.01           # jawOpen parts the lips by at least this share of the diagonal
