@@ -10,6 +10,7 @@ import pytest
 
 import bpy
 
+from blender_tests.helpers.character_files import load_into_scene
 from exclone_addon.blender import character, mesh_io, workflow
 from exclone_addon.blender import landmarks as stored_landmarks
 from exclone_addon.core.library import arkit_blendshapes
@@ -28,21 +29,6 @@ LIP_DOWN = 0.05       # eye distances: the least jawOpen takes the lower lip dow
 # Known: where the blink comes down but does not close (measured, not tuned away)
 THIN_LIDS = {"mh_head_lowpoly.glb": "the 485-vertex head's upper lid is one row of vertices: "
                                     "eyeBlink_L lowers it by about 0.02 eye distances only"}
-
-
-def _load(path):
-    """Every object of the file in the scene (appended or imported), transforms evaluated."""
-    if path.suffix == ".blend":
-        with bpy.data.libraries.load(str(path), link=False) as (source, loaded):
-            loaded.objects = list(source.objects)
-        for obj in loaded.objects:
-            bpy.context.scene.collection.objects.link(obj)
-    elif path.suffix == ".glb":
-        bpy.ops.import_scene.gltf(filepath=str(path))
-    else:
-        bpy.ops.import_scene.fbx(filepath=str(path))
-    bpy.context.view_layer.update()
-    return {obj.name: obj for obj in bpy.context.scene.objects}
 
 
 def _select_the_character(objects, face_name):
@@ -73,7 +59,7 @@ def _last_report(capfd):
 @pytest.mark.parametrize("file_name", sorted(FACE_OBJECT))
 def test_generate_arkit_on_a_whole_character(file_name, shared_data, capfd):
     workflow.clear_cache()
-    objects = _load(shared_data / "characters" / file_name)
+    objects = load_into_scene(shared_data / "characters" / file_name)
     face_name = FACE_OBJECT[file_name]
     face_obj = objects[face_name]
     _select_the_character(objects, face_name)
@@ -151,7 +137,7 @@ def test_the_command_line_keys_the_characters_other_objects(shared_data, tmp_pat
     assert keyed["Teeth"] >= 1 and keyed["Eye_L"] >= 1, keyed
     assert "Teeth" in report["other_objects"]
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    objects = _load(out)
+    objects = load_into_scene(out)
     assert {"jawOpen", "eyeLookOut_L"} <= set(objects["Body"].data.shape_keys.key_blocks.keys())
     teeth_keys = objects["Teeth"].data.shape_keys
     assert teeth_keys is not None and "jawOpen" in teeth_keys.key_blocks
@@ -164,7 +150,7 @@ def test_auto_landmarks_on_a_body_are_on_its_head(shared_data):
     named landmarks on the face's object, inside its head region: the nose tip above the mouth
     corners, in the top 30% of the body's height."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    objects = _load(shared_data / "characters" / "mh_male_body.blend")
+    objects = load_into_scene(shared_data / "characters" / "mh_male_body.blend")
     body = objects["Body"]
     bpy.context.view_layer.objects.active = body
     body.select_set(True)
@@ -184,7 +170,7 @@ def test_edited_source_landmarks_pair_with_the_bodys_head(shared_data):
     """Landmarks edited on the source only: the body's side is found as Clone finds it (on its
     head region), so the pairs hold (the whole-body path found 1 landmark and failed)."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
-    body = _load(shared_data / "characters" / "mh_male_body.blend")["Body"]
+    body = load_into_scene(shared_data / "characters" / "mh_male_body.blend")["Body"]
     source = workflow.library_source()
     source_obj = mesh_io.object_from_mesh("source", source.mesh)
     automatic = dict(zip(source.automatic_landmarks[0],

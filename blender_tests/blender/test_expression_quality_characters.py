@@ -11,6 +11,7 @@ import pytest
 
 import bpy
 
+from blender_tests.helpers.character_files import load_into_scene
 from blender_tests.helpers.paths import SHARED_DATA
 from exclone_addon.blender import character as blender_character
 from exclone_addon.core import character, expression_measures as em
@@ -38,24 +39,11 @@ LIPS_PART = 0.01           # jawOpen parts the lips by at least this share of th
 LIPS_SEALED = 0.02         # reached: |gap| at jawOpen + mouthClose below 1.5% (bar: 0.2%)
 
 
-def _load(path):
-    """The file's objects in an empty scene (appended or imported), transforms evaluated."""
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    if path.suffix == ".blend":
-        with bpy.data.libraries.load(str(path), link=False) as (source, loaded):
-            loaded.objects = list(source.objects)
-        for obj in loaded.objects:
-            bpy.context.scene.collection.objects.link(obj)
-    else:
-        bpy.ops.import_scene.gltf(filepath=str(path))
-    bpy.context.view_layer.update()
-    return {obj.name: obj for obj in bpy.context.scene.objects}
-
-
 @lru_cache(maxsize=None)
 def measured(file_name):
     """The expression measures of the library's clone onto the file's face, beside the source."""
-    face_object = _load(SHARED_DATA / "characters" / file_name)[REACHED[file_name][0]]
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    face_object = load_into_scene(SHARED_DATA / "characters" / file_name)[REACHED[file_name][0]]
     part = character.Part(face_object.name, blender_character.world_polymesh(face_object))
     face = character.find([part])
     library = load_library().subset(EXPRESSIONS)

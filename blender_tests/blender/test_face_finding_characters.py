@@ -4,8 +4,7 @@ rotation and centimetres, a stylised head scaled by 100."""
 import numpy as np
 import pytest
 
-import bpy
-
+from blender_tests.helpers.character_files import load_into_scene
 from exclone_addon.core import face_finding
 from exclone_addon.core.errors import ExCloneError
 
@@ -15,22 +14,6 @@ FILES = ("mh_male_body.blend", "mh_male_body.glb", "mh_female_old_body.fbx", "mh
 FORWARD, UP = np.array([0.0, -1.0, 0.0]), np.array([0.0, 0.0, 1.0])
 NOSE_TOLERANCE = 0.15        # eye distances
 ANGLE_TOLERANCE = 10.0       # degrees
-
-
-def _load(path):
-    """Every mesh object of the file in the scene (appended or imported)."""
-    if path.suffix == ".blend":
-        with bpy.data.libraries.load(str(path), link=False) as (source, loaded):
-            loaded.objects = list(source.objects)
-        for obj in loaded.objects:
-            bpy.context.scene.collection.objects.link(obj)
-    elif path.suffix == ".glb":
-        bpy.ops.import_scene.gltf(filepath=str(path))
-    else:
-        bpy.ops.import_scene.fbx(filepath=str(path))
-    bpy.context.view_layer.update()
-    return sorted((obj for obj in bpy.context.scene.objects if obj.type == 'MESH'),
-                  key=lambda obj: obj.name)
 
 
 def _world_mesh(obj):
@@ -47,7 +30,8 @@ def _world_mesh(obj):
 
 def _character(path):
     """All mesh objects together: vertices, triangles, (T,) object index, object names."""
-    objects = _load(path)
+    objects = sorted((obj for obj in load_into_scene(path).values() if obj.type == 'MESH'),
+                     key=lambda obj: obj.name)
     meshes = [_world_mesh(obj) for obj in objects]
     offsets = np.cumsum([0] + [len(v) for v, _ in meshes])
     vertices = np.vstack([v for v, _ in meshes])
