@@ -544,18 +544,22 @@ def _done_entry(target, seconds, status="done"):
                   fit_error_rel=report["quality"].get("registration_mean_distance_rel"))
 
 
-def _run_target(command, target, shared_args, env):
-    """This script on one target; returns its summary entry (never raises for a failed target)."""
+def _run_target(command, target, shared_args, env, started):
+    """This script on one target; returns its summary entry (never raises for a failed target).
+    started(process) is called with the target's process as soon as it runs."""
     arguments = ["--target", target.spec, "--out", str(target.result)] + shared_args
     if target.export_dir is not None:
         arguments += ["--export-dir", str(target.export_dir)]
     clock = time.perf_counter()
-    done = subprocess.run(command + arguments, capture_output=True, text=True, env=env)
+    with subprocess.Popen(command + arguments, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                          text=True, env=env) as process:
+        started(process)
+        _, stderr = process.communicate()
     seconds = time.perf_counter() - clock
-    if done.returncode != 0:
-        lines = [line for line in done.stderr.splitlines() if line.strip()]
+    if process.returncode != 0:
+        lines = [line for line in stderr.splitlines() if line.strip()]
         error = lines[-1].removeprefix(f"{PROG}: error: ") if lines else \
-            f"exited with code {done.returncode}"
+            f"exited with code {process.returncode}"
         return _entry(target, "failed", seconds, error=error)
     return _done_entry(target, seconds)
 
@@ -694,23 +698,35 @@ def _run_targets(args, targets):
     print(f"batch: {len(pending)} target(s) to run, {jobs} at a time ({why})", flush=True)
     command, shared, env = _child_command(), _shared_arguments(args), _batch_environment(jobs)
 
-    interrupted, running, stopped = threading.Event(), set(), set()
+    interrupted, lock, running, stopped = threading.Event(), threading.Lock(), {}, set()
+
+    def started(index, process):
+        with lock:
+            running[index] = process
+            if interrupted.is_set():
+                process.terminate()
 
     def one(index):
-        running.add(index)
-        entry = _run_target(command, targets[index], shared, env)
+        entry = _run_target(command, targets[index], shared, env,
+                            lambda process: started(index, process))
         if entry["status"] == "failed" and interrupted.is_set():
             entry["error"] = "interrupted"     # whatever the process said as it was stopped
         entries[index] = entry
-        running.discard(index)
+        with lock:
+            running.pop(index, None)
         print(_console_line(index, len(targets), entry), flush=True)
 
     pool = ThreadPoolExecutor(max_workers=jobs)
     try:
         list(pool.map(one, pending))
-    except KeyboardInterrupt:   # Ctrl-C: no new target starts; those running end (they get it too)
-        interrupted.set()
-        stopped.update(running)
+    except KeyboardInterrupt:   # Ctrl-C: no new target starts; those running are stopped
+        with lock:
+            interrupted.set()
+            stopped.update(running)
+            # The terminal's Ctrl-C reached them too, but Blender's add-on loader swallows one
+            # that lands while a process is still starting: that target would run to its end.
+            for process in running.values():
+                process.terminate()
         pool.shutdown(wait=True, cancel_futures=True)
         for index in pending:
             if entries[index] is None:

@@ -7,6 +7,7 @@ import argparse
 import contextlib
 import math
 import os
+import signal
 import sys
 from pathlib import Path
 
@@ -144,8 +145,15 @@ def stderr_to_stdout():
         os.close(saved)
 
 
+def _stop_as_interrupted(*_):
+    raise KeyboardInterrupt
+
+
 def run_main(prog, work):
-    """Run work() and return the exit code: 0, or 1 after one line `prog: error: ...` on stderr."""
+    """Run work() and return the exit code: 0, or 1 after one line `prog: error: ...` on stderr.
+    SIGTERM (a batch or a render farm stopping this run) ends it as Ctrl-C does: no output is
+    left half-written."""
+    signal.signal(signal.SIGTERM, _stop_as_interrupted)
     try:
         with stderr_to_stdout():
             work()
