@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import read_tracker_locations
 from exclone_addon.core.tracking import FRONTAL, Camera
+from blender_tests.helpers.frame_cache import cached_frames
 from blender_tests.helpers.paths import REPO_ROOT
 
 sys.path.insert(0, str(REPO_ROOT / "scripts"))   # render_faces (rendering only)
@@ -76,16 +77,13 @@ def rendered_eye_take(frames=EYE_FRAMES):
     """The take's frames (PNG paths), its truth (blink, yaw, pitch), the camera and the CPU
     seconds a frame took to render (0 when read from the cache)."""
     blink, yaw, pitch = eye_recipe(frames)
-    folder = EYE_CACHE / _key(frames)
-    paths = [folder / f"frame_{k:04d}.png" for k in range(frames)]
-    seconds = 0.0
-    if not all(p.is_file() for p in paths):
-        seconds = _render(folder, paths, blink, yaw, pitch)
+    paths, seconds = cached_frames(EYE_CACHE / _key(frames), frames,
+                                   lambda paths: _render(paths, blink, yaw, pitch))
     return SimpleNamespace(frames=paths, blink=blink, yaw=yaw, pitch=pitch,
                            camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds)
 
 
-def _render(folder, paths, blink, yaw, pitch):
+def _render(paths, blink, yaw, pitch):
     import render_faces      # needs bpy
     library = load_library()
     vertices, parts = library.mesh.vertices, library.parts
@@ -97,7 +95,6 @@ def _render(folder, paths, blink, yaw, pitch):
     closing = library.deltas[blinks].sum(axis=0)
     centre = located.mean(axis=0)
     translation = np.array([0.0, 0.0, DISTANCE_CM])
-    folder.mkdir(parents=True, exist_ok=True)
     start = time.process_time()
     for k, path in enumerate(paths):
         posed = turned_eyes(vertices + blink[k] * closing, parts["eyeballs"], yaw[k], pitch[k])

@@ -29,6 +29,7 @@ from exclone_addon.core.tracker_model import locate_tracker_landmarks, read_trac
 from exclone_addon.core.tracking import (FRONTAL, Camera, ShapeFitter, calibrate_neutral,
                                          expression_shape_model)
 
+from blender_tests.helpers.frame_cache import cached_frames
 from blender_tests.helpers.paths import REPO_ROOT, SHARED_DATA
 
 sys.path.insert(0, str(REPO_ROOT / "scripts"))   # render_faces (rendered takes only)
@@ -229,23 +230,20 @@ def rendered_take(kind="moving", identity=None, frames=None, seed=3):
     locations = read_tracker_locations()
     centre = locations.sample(vertices).mean(axis=0)
     translation = np.array([0.0, 0.0, RENDER_DISTANCE_CM])
-    folder = RENDER_CACHE / _take_key(kind, identity, len(weights), seed)
-    paths = [folder / f"frame_{k:04d}.png" for k in range(len(weights))]
-    seconds = 0.0
-    if not all(p.is_file() for p in paths):
-        seconds = _render_take(folder, paths, vertices, deltas, parts, truth, rotations,
-                               translation, centre, locations)
+    paths, seconds = cached_frames(
+        RENDER_CACHE / _take_key(kind, identity, len(weights), seed), len(weights),
+        lambda paths: _render_take(paths, vertices, deltas, parts, truth, rotations, translation,
+                                   centre, locations))
     return SimpleNamespace(frames=paths, truth=truth, unit_weights=weights, names=names,
                            rotations=rotations, translation=translation, kind=kind,
                            camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds,
                            vertices=vertices, deltas=deltas)
 
 
-def _render_take(folder, paths, vertices, deltas, parts, truth, rotations, translation, centre,
+def _render_take(paths, vertices, deltas, parts, truth, rotations, translation, centre,
                  locations):
-    """Renders every frame into `folder`; returns the CPU seconds per frame."""
+    """Renders every frame to `paths`; returns the CPU seconds per frame."""
     import render_faces      # needs bpy: imported only when a take is rendered
-    folder.mkdir(parents=True, exist_ok=True)
     colours = render_faces.vertex_colours(vertices, parts, locations.sample(vertices))
     renderer = render_faces.FaceRenderer(
         render_faces.rendered_triangles(load_library().mesh.triangles(), parts), colours, IMAGE_SIZE)
