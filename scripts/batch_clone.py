@@ -92,7 +92,8 @@ def _parser():
         prog="batch_clone.py",
         description="Clone facial expressions onto a head mesh and save them as shape keys.")
     parser.add_argument("--source", metavar="S",
-                        help="expressions: a .blend[:Object], .fbx or .glb mesh with shape keys, "
+                        help="expressions: a .blend[:Object], .fbx or .glb mesh with shape keys "
+                             "(a full body too: its keys are taken at the face found on it), "
                              "or a folder with neutral.obj + one OBJ per expression "
                              "(default: the bundled ICT-FaceKit ARKit library)")
     parser.add_argument("--target", metavar="T", action="append",
@@ -234,6 +235,20 @@ def read_landmarks(path, n_source, n_target):
     return {"source": source, "target": target}
 
 
+def in_source_head(source, landmarks):
+    """The landmark pairs with their source ids (the source object's own numbering) in its
+    head region's, when the source was cut to one (a full body); ExCloneError if one lies
+    outside it."""
+    if source.head is None:
+        return landmarks
+    inside = source.head.head_ids(landmarks["source"])
+    if inside is None:
+        raise ExCloneError(f"--landmarks: some source landmarks lie outside the head region of "
+                           f"{source.description} where its face was found; place them on the "
+                           "face")
+    return {"source": inside.tolist(), "target": landmarks["target"]}
+
+
 def _file_stem(name):
     """name as a portable file name: anything but ASCII letters, digits, '_', '.', '-' as '_'
     (flamenco/exclone_batch.js names a farm's outputs by the same rule)."""
@@ -343,8 +358,9 @@ def read_inputs(args, paths, timings):
                                            else data.DEMO_HEAD_FILE]
     landmarks = None
     if args.landmarks:
-        landmarks = read_landmarks(Path(args.landmarks), len(source.mesh.vertices),
-                                   len(target.mesh.vertices))
+        whole = source.head.total if source.head is not None else len(source.mesh.vertices)
+        landmarks = in_source_head(source, read_landmarks(Path(args.landmarks), whole,
+                                                          len(target.mesh.vertices)))
         inputs.append(Path(args.landmarks))
     outputs = paths.files()
     if paths.export_dir is not None:
@@ -399,6 +415,8 @@ def build_report(args, paths, inputs, result, written, timings):
     added, _, skipped, exported, engine, (followed, keyed) = written
     return {
         "inputs": {"source": source.description, "target": target.description,
+                   "source_region": None if source.head is None else
+                   f"head region: {len(source.head.vertex_ids):,} of {source.head.total:,} vertices",
                    "face": target.face.description(),
                    "landmarks": args.landmarks, "shapes": args.shapes},
         "counts": {"source_vertices": len(source.mesh.vertices),
@@ -459,6 +477,8 @@ def run(args):
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings)
         result.target_landmarks = face.head.own_ids(result.target_landmarks)
+        if inputs.source.head is not None:          # the source object's own numbering
+            result.source_landmarks = inputs.source.head.own_ids(result.source_landmarks)
         timings["total"] = time.perf_counter() - started
         report = build_report(args, paths, inputs, result, written, timings)
         report["measures"] = {"summary": summary(measures), "expressions": measures}

@@ -4,7 +4,10 @@ file's coordinates and vertex order are kept) or a folder with neutral.obj + one
 expression (core.library.load_obj_folder). Input files are only read.
 
 A target file is a character: without :Object every mesh object of the file is, with :Object
-that object and its hierarchy; the face is found on them (blender/workflow.character_face).
+that object and its hierarchy; the face is found on them (blender/workflow.character_face). A
+source file's object (:Object, else its first mesh with shape keys by name) is read as the
+operators read a source object: the face is found on it and only its head region's motion is
+the source (workflow.object_source), so a full body with expression keys is a source.
 """
 import math
 from dataclasses import dataclass
@@ -111,10 +114,11 @@ def _checked(mesh, what):
 
 
 def _library_from_file(path, name, role):
+    """The object's shape keys as the Blender operators read a source object
+    (workflow.object_source: a full body's head region only)."""
     obj = pick_object(path, name, role, need_shape_keys=True)
-    names, deltas = mesh_io.shape_keys_from_object(obj, what=role)
-    return library.ExpressionLibrary(mesh_io.mesh_from_object(obj, what=role), names, deltas,
-                                     description=f"{path}:{obj.name}")
+    bpy.context.view_layer.update()          # imported objects: their matrix_world
+    return workflow.object_source(obj, description=f"{path}:{obj.name}")
 
 
 def load_source(spec, role="source"):

@@ -86,14 +86,23 @@ def library_source():
     return _library(data.LIBRARY_FILE)
 
 
-def object_source(obj):
-    """The expressions of a mesh object's shape keys as an ExpressionLibrary."""
+def object_source(obj, description=None):
+    """The expressions of a mesh object's shape keys as an ExpressionLibrary. The face is found
+    on the object as on a target (character_face), and only its head region is the source (a
+    full body's keys are taken at its face; core.character.source_head); an object on which no
+    face is found, or whose landmarks were edited (placed on the whole mesh), is used whole.
+    description: what reports call it (default: the object's name)."""
     if obj.type != 'MESH':
         raise ExCloneError(f"Source '{obj.name}' is not a mesh")
     if not has_shape_keys(obj):
         raise ExCloneError(f"Source '{obj.name}' has no shape keys to clone")
     names, deltas = mesh_io.shape_keys_from_object(obj, what="source")
-    return ExpressionLibrary(basis_mesh(obj, "source"), names, deltas, description=f"'{obj.name}'")
+    whole = ExpressionLibrary(basis_mesh(obj, "source"), names, deltas,
+                              description=description or f"'{obj.name}'")
+    if stored_landmarks.is_edited(obj):
+        return whole
+    face = character_face(character.parts([obj]))
+    return core_character.source_head(whole, face)
 
 
 def resolve_source(context, target, use_library):
@@ -161,10 +170,12 @@ def landmark_pairs(source, source_obj, target_obj, target_mesh, target_face):
         return None
 
     def ids_of(obj, mesh):
-        if obj is None:
+        if obj is None or (obj is source_obj and source.head is not None
+                           and stored_landmarks.IDS not in obj):
             return dict(zip(source.automatic_landmarks[0], source.automatic_landmarks[1].tolist()))
         if stored_landmarks.IDS in obj:
-            return stored_landmarks.stored(obj)
+            ids = stored_landmarks.stored(obj)
+            return ids if obj is not source_obj else _in_source_head(source, ids)
         return face_landmarks(target_face) if obj is target_obj else stored_landmarks.detect(mesh)
 
     src, tgt = ids_of(source_obj, source.mesh), ids_of(target_obj, target_mesh)
@@ -176,6 +187,18 @@ def landmark_pairs(source, source_obj, target_obj, target_mesh, target_face):
         raise ExCloneError(f"{exc} (the landmark names source and target share): run Auto "
                            "Landmarks on both") from exc
     return pairs
+
+
+def _in_source_head(source, ids):
+    """{name: id} of the source object's stored landmarks in the numbering of `source` (its head
+    region when it was cut to one). ExCloneError if one lies outside that region."""
+    if source.head is None:
+        return ids
+    inside = source.head.head_ids(list(ids.values()))
+    if inside is None:
+        raise ExCloneError(f"The landmarks stored on the source {source.description} lie outside "
+                           "its face's head region: run Auto Landmarks again")
+    return dict(zip(ids, inside.tolist()))
 
 
 @dataclass

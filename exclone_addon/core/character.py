@@ -1,12 +1,15 @@
-"""A character as a target: which of its meshes carries the face, the head region that is solved,
-and the found face's guidance for the automatic landmarks (docs/method.md §4, §9).
+"""A character as a target or a source: which of its meshes carries the face, the head region
+that is solved (or whose expressions are cloned), and the found face's guidance for the automatic
+landmarks (docs/method.md §4, §9).
 
 A character is one or more meshes in one (world) space: a full body with separate eyes, brows
 and teeth, a set of objects, or a lone head. The face is found on all of them together
 (core.face_finding, by rendering and detecting it); the mesh the found FaceMesh points land on
 most often is the face's. Only its head region is solved: the polygons wholly inside the region
 make the head mesh given to the engine, and the vertices on the cut (shared with a polygon
-outside) are held still, so nothing below the neck moves.
+outside) are held still, so nothing below the neck moves. A source character (a full body with
+expression keys) is cut the same way: its expressions are taken from its head region only, in the
+source's own coordinates, with the landmarks found there (source_head).
 """
 from dataclasses import dataclass, replace
 
@@ -14,7 +17,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import face_finding
+from .cloning import found_landmarks
 from .errors import ExCloneError
+from .library import ExpressionLibrary
 from .landmarks import NAMES
 from .mesh import PolyMesh, diagonal, vertex_parts, welded
 from .orientation import FaceFrame
@@ -180,6 +185,24 @@ def find(parts):
                     {name: (point - origin) @ turn for name, point in world.points.items()},
                     world.eye_distance)
     return CharacterFace(index, parts[index].name, head, own, turn=turn, origin=origin)
+
+
+def source_head(source, face):
+    """The ExpressionLibrary `source` (read whole from one mesh) cut to the head region of the
+    CharacterFace found on that mesh, as a target's is: the head's polygons and the expressions'
+    motion there, in the source's own coordinates (any motion outside the head is left out),
+    the automatic landmarks found on the head with the face's guide (in the face's frame: vertex
+    ids do not depend on it), and `head` for mapping the mesh's own vertex ids. A face used whole
+    (none found by rendering) leaves the source as it is."""
+    if face.guide is None:
+        return source
+    head = face.head
+    names, ids = found_landmarks(head.mesh, "source", face_guide=face.guide)
+    mesh = PolyMesh(source.mesh.vertices[head.vertex_ids], head.mesh.loop_totals,
+                    head.mesh.loop_vertices)
+    return ExpressionLibrary(mesh, list(source.names), source.deltas[:, head.vertex_ids],
+                             automatic_landmarks=(list(names), np.asarray(ids, dtype=np.int64)),
+                             description=source.description, head=head)
 
 
 def _with_inner_parts(mesh, triangles, region):

@@ -48,6 +48,9 @@ class ExpressionLibrary:
     # its automatic landmarks found once, (names, vertex ids): shipped for the bundled library
     automatic_landmarks: tuple = None
     description: str = ""      # what it is, for reports: "the built-in ARKit library", a path
+    # the head region of a bigger mesh (a full body) the library was cut to, as a
+    # core.character.HeadCut (its ids: the mesh object's own numbering), or None: used whole
+    head: object = None
 
     def subset(self, names):
         """The library restricted to `names`, in that order."""
@@ -58,7 +61,8 @@ class ExpressionLibrary:
                                f"available: {', '.join(self.names)}")
         rows = [index[name] for name in names]
         return ExpressionLibrary(self.mesh, list(names), self.deltas[rows], self.landmarks68,
-                                 dict(self.parts), self.automatic_landmarks, self.description)
+                                 dict(self.parts), self.automatic_landmarks, self.description,
+                                 self.head)
 
 
 def load_library(path=None):
