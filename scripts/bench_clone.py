@@ -14,7 +14,7 @@ into another. Cases:
 - face_dense_target: the face region onto the demo head subdivided once (midpoint subdivision,
   same shape, about 4x the vertices): a third size point, for memory against target size;
 - cli_obj_folder: the command line (scripts/batch_clone.py --no-preview) from process start to
-  .blend written, on an 11-OBJ source folder (the face region's neutral and its first 10
+  .blend written (wall and the process's CPU seconds), on an 11-OBJ source folder (the face region's neutral and its first 10
   expressions, written with core.mesh.write_obj) onto a 7,000-vertex target (the demo head with
   its 2,756 front-most triangles split at their centroids: `densified`; a midpoint subdivision
   would give 4x the vertices, Catmull-Clark needs Blender's modifier); and the same folder read
@@ -408,9 +408,12 @@ def run_cli_case():
         out = folder / "out" / "result.blend"
         command = [sys.executable, str(CLI), "--source", str(source), "--target", str(target),
                    "--out", str(out), "--no-preview"]
-        start = time.perf_counter()
+        start, children = time.perf_counter(), resource.getrusage(resource.RUSAGE_CHILDREN)
         proc = subprocess.run(command, capture_output=True, text=True, cwd=folder)
         wall = time.perf_counter() - start
+        # the CLI's own CPU seconds (user + system): the figure other load does not stretch
+        after = resource.getrusage(resource.RUSAGE_CHILDREN)
+        cpu = after.ru_utime + after.ru_stime - children.ru_utime - children.ru_stime
         if proc.returncode != 0 or not out.is_file():
             return {"error": (proc.stderr.strip().splitlines() or ["no .blend written"])[-1]}
         report = json.loads(out.with_suffix(".json").read_text(encoding="utf-8"))
@@ -420,12 +423,20 @@ def run_cli_case():
             "target_vertices": report["counts"]["target_vertices"],
             "expressions": report["counts"]["expressions"],
             "seconds_process_start_to_blend_written": round(wall, 2),
+            "cpu_seconds_process_start_to_blend_written": round(cpu, 2),
             "cli_timings": {k: round(v, 3) for k, v in report["timings"].items()},
             "obj_folder_read": readers}
 
 
 CHARACTER_FILES = {"character_body": "mh_male_body.blend",
                    "character_head_dense": "mh_head_dense.blend"}
+# the cases run_case runs (case_inputs' names)
+CLONE_CASES = ("face", "head", "face_dense_target")
+
+
+def _sized(case):
+    """Whether the case is `size_N` (N a whole number of target vertices)."""
+    return case.startswith("size_") and case[len("size_"):].isdigit()
 
 
 def run_character_case(name):
@@ -765,10 +776,15 @@ def main(argv=None):
             result = run_character_case(args.case)
         elif args.case == "ict_identity":
             result = run_identity_case()
-        elif args.case.startswith("size_"):
+        elif _sized(args.case):
             result = run_sized_case(args.case)
-        else:
+        elif args.case in CLONE_CASES:
             result = run_case(args.case)
+        else:
+            parser.exit(2, f"bench_clone: unknown case {args.case!r}; the cases: "
+                           + ", ".join([*CLONE_CASES, "cli_obj_folder", "ict_identity",
+                                        *CHARACTER_FILES, "compare", "size_N (N vertices)"])
+                        + "\n")
         print(json.dumps(result))
         return 0
 

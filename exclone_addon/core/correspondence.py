@@ -26,6 +26,9 @@ from .proximity import interpolate
 # Barycentric sample points inside a triangle: the centroid and one towards each corner.
 SAMPLES = np.array([[1, 1, 1], [4, 1, 1], [1, 4, 1], [1, 1, 4]], dtype=float)
 SAMPLES /= SAMPLES.sum(axis=1, keepdims=True)
+# A target triangle whose samples lie within this many source edge lengths of its centroid
+# is looked up at its centroid alone (which then weighs like all the samples).
+SMALL_TRIANGLE = 0.25
 
 
 @dataclass
@@ -52,20 +55,42 @@ def _matches(origin, ids, other, samples, max_distance):
     return owner[ok], tri[ok]
 
 
+def _target_matches(source, target, ids, max_distance):
+    """_matches of the target triangles `ids` on the source, and each match's weight: the
+    centroid first; the other SAMPLES only in the triangles SMALL_TRIANGLE source edges across
+    or more (in a smaller one they land where the centroid does: the centroid weighs for all)
+    whose centroid is near enough that one of them may match (a sample lies at most `reach`
+    from the centroid: beyond max_distance + reach none can)."""
+    c_from, c_to = _matches(target, ids, source, SAMPLES[:1], max_distance)
+    corners = target.vertices[target.triangles[ids]]
+    centre = corners.mean(axis=1)
+    # a sample's weights differ from the centroid's by d (summing to 0): it lies at most
+    # |d|_1 times the furthest corner's distance from the centroid
+    reach = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1) * np.abs(
+        SAMPLES[1:] - SAMPLES[0]).sum(axis=1).max()
+    large = reach >= SMALL_TRIANGLE * source.mean_edge_length
+    near = source.closest(centre[large])[2] < max_distance + reach[large]
+    split = np.flatnonzero(large)[near]
+    s_from, s_to = _matches(target, ids[split], source, SAMPLES[1:], max_distance)
+    weights = np.where(large[c_from], 1.0, len(SAMPLES)) / len(SAMPLES)
+    return (np.r_[c_from, split[s_from]], np.r_[c_to, s_to],
+            np.r_[weights, np.full(len(s_from), 1.0 / len(SAMPLES))])
+
+
 def triangle_correspondence(source, target, max_distance, wanted=None):
     """Weighted triangle pairs between a registered source Surface and the target Surface (same
     space). wanted: optional (T_target,) mask of the target triangles that need pairs (default:
     all)."""
     wanted = np.ones(len(target.triangles), dtype=bool) if wanted is None else wanted
     ids = np.flatnonzero(wanted)
-    t_from, s_to = _matches(target, ids, source, SAMPLES, max_distance)
+    t_from, s_to, t_weights = _target_matches(source, target, ids, max_distance)
     t_from = ids[t_from]
     s_from, t_to = _matches(source, np.arange(len(source.triangles)), target, SAMPLES[:1],
                             max_distance)
     keep = wanted[t_to]
     s_from, t_to = s_from[keep], t_to[keep]
     # each target sample carries 1/k of its triangle; a source centroid weighs like one sample
-    weights = np.full(len(t_from) + len(s_from), 1.0 / len(SAMPLES))
+    weights = np.r_[t_weights, np.full(len(s_from), 1.0 / len(SAMPLES))]
     return Correspondence(np.r_[t_from, t_to], np.r_[s_to, s_from], weights)
 
 

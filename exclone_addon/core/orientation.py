@@ -96,14 +96,22 @@ def symmetry_plane(samples, diagonal, surface, candidates=600):
     dirs = dirs[np.argsort(mirror_errors(dirs, probe[::4]))[:50]]
     starts = dirs[np.argsort(mirror_errors(dirs, probe))[:3]]
     points = samples[:: max(1, len(samples) // 1500)]
-    # the starts are independent: two at a time (numpy and the KD-tree release the GIL)
+    # the starts are independent: two at a time (numpy and the KD-tree release the GIL); after
+    # a few steps the best of them goes on alone (ICP creeps: the order is set early)
     with ThreadPoolExecutor(max_workers=2) as pool:
-        planes = list(pool.map(lambda d: _mirror_icp(points, surface, d, d @ centre), starts))
+        planes = list(pool.map(lambda d: _mirror_icp(points, surface, d, d @ centre,
+                                                     steps=TRIAL_STEPS), starts))
     normal, offset, error = min(planes, key=lambda plane: plane[2])
+    normal, offset, error = _mirror_icp(points, surface, normal, offset, MIRROR_STEPS - TRIAL_STEPS)
     return normal, offset, error / diagonal
 
 
-def _mirror_icp(points, surface, normal, offset, steps=15):
+# Mirror ICP steps from each of the three starts, and in all (the best start goes on alone).
+TRIAL_STEPS = 4
+MIRROR_STEPS = 15
+
+
+def _mirror_icp(points, surface, normal, offset, steps):
     """Refine a symmetry plane; returns (normal, offset, mean mirror mismatch of the points)."""
     for _ in range(steps):
         image = _mirror(points, normal, offset)
