@@ -54,20 +54,21 @@ SIZE = (0.6, 1.6)       # the clone's motion / the source's (each x its face's o
 # 22%); on the ICT neutral the lids fold instead of closing, the mouth-open crumples the cheeks,
 # the pursing pulls the mouth sideways and the smile's motion spreads (see the contact sheets in
 # the report of issue #10 item 3). Checked with margins: excess stretch x 1.25, flips + 10%,
-# eyelid gap + 0.05, cosine - 0.05, size x 0.8. The ICT figures are the worst of several runs:
-# they move between runs and numpy versions (eye-left-closure 60-70 flips, mouth-open 5.4-7.3x,
-# mouth-depression 6 flips with numpy 1.26, 36 with numpy 2).
+# eyelid gap + 0.05, cosine - 0.05, size x 0.8. The figures are the worst of several runs with
+# numpy 1.26 and numpy 2: worst-edge and flip counts move between them (the demo head's eye
+# closures 2.7-2.8x with numpy 1.26, 3.55x with numpy 2; on the ICT neutral eye-left-closure
+# 60-70 flips, mouth-open 5.4-7.3x, mouth-depression 6 flips with numpy 1.26, 36-41 with numpy 2).
 REACHED = {
     ("demo_head", "mouth-open"): {"excess_stretch": 2.96},
-    ("demo_head", "eye-left-closure"): {"excess_stretch": 2.80, "flipped_triangles": 23},
-    ("demo_head", "eye-right-closure"): {"excess_stretch": 2.80, "flipped_triangles": 23},
+    ("demo_head", "eye-left-closure"): {"excess_stretch": 3.55, "flipped_triangles": 23},
+    ("demo_head", "eye-right-closure"): {"excess_stretch": 3.55, "flipped_triangles": 23},
     ("ict_neutral", "eye-left-closure"): {"eyelid_gap": 0.44, "flipped_triangles": 70,
                                           "cosine": 0.515, "size": 0.43},
     ("ict_neutral", "eye-right-closure"): {"eyelid_gap": 0.50, "flipped_triangles": 70,
                                            "cosine": 0.519, "size": 0.42},
     ("ict_neutral", "mouth-open"): {"excess_stretch": 7.33, "flipped_triangles": 578,
                                     "cosine": 0.847},
-    ("ict_neutral", "mouth-depression"): {"flipped_triangles": 36},
+    ("ict_neutral", "mouth-depression"): {"flipped_triangles": 41},
     ("ict_neutral", "mouth-corner-puller"): {"excess_stretch": 2.73, "cosine": 0.649},
     ("ict_neutral", "mouth-pursing"): {"flipped_triangles": 14, "cosine": 0.536},
 }
