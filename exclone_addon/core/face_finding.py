@@ -5,10 +5,12 @@ Works for a head or a whole character (its objects' world-space meshes concatena
 orientation and units:
 1. Search: orthographic renders of the whole mesh along its 3 principal axes both ways and the
    8 diagonals between them (a face turned anywhere is within 55 degrees of one of the 14; the
-   axes first: most characters face along one), image up along the longest axis, each turned by
-   4 rolls of 90 degrees; BlazeFace runs on the whole image and on a close crop of the
-   silhouette's top (on a whole-body view the face is a few dozen pixels: the detector needs it
-   closer). A body's longest axis is its height, so one roll has its head at the top.
+   axes first, shortest first: most characters face along one, a body or a mask along its
+   thinnest), image up along the longest axis, each turned by 4 rolls of 90 degrees; BlazeFace
+   runs on the whole image and on a close crop of the silhouette's top (on a whole-body view
+   the face is a few dozen pixels: the detector needs it closer). A body's longest axis is its
+   height, so one roll has its head at the top. A view whose best detection is confident is
+   checked (2.) at once, and the search stops there if it passes.
 2. Check and refine the best detections: FaceMesh on the view, its points back onto the surface
    through the render's triangle-id buffer, a frame from them (the rotation that lays MediaPipe's
    canonical face onto them), then a close render straight at the face along that frame, detected
@@ -31,14 +33,17 @@ from .mesh import PolyMesh, triangle_areas, vertex_normals, vertex_parts, welded
 
 RENDER_SIZE = 512
 # Whole-mesh views, as coefficients of the mesh's principal axes (longest first): the 6 axis
-# directions first, then the 8 diagonals.
-SEARCH_DIRECTIONS = (np.vstack([np.eye(3), -np.eye(3)]),
+# directions first (the shortest axis both ways first), then the 8 diagonals.
+SEARCH_DIRECTIONS = (np.repeat(np.eye(3)[::-1], 2, axis=0) * np.tile([[1], [-1]], (3, 1)),
                      np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T / np.sqrt(3.0))
 # Share of the silhouette's height taken as the close crop of its top: a standing body's head
 # and neck (a body is ~7.5 heads tall), upright in one of the four rolls.
 TOP_CROP = 0.25
 # Detections (of the search) refined before giving up; they are tried best first.
 CANDIDATES = 4
+# A view's best detection scoring this much is refined at once (a face seen well: the other
+# views are not rendered if it passes); the others wait for the whole search's ranking.
+CONFIDENT = 0.8
 REFINEMENTS = 2
 # Acceptance on the close render: FaceMesh's presence and BlazeFace's score there. Measured:
 # faces (the shared heads, bodies, ICT faces) re-detect at 0.87-0.95 with presence 1.000; the
@@ -130,11 +135,22 @@ def find_face(vertices, triangles):
     normals = _shading_normals(vertices, triangles)
     models = _Models()
     axes = _principal_axes(vertices, triangles)
+    # the checks on the close render are strict: the first candidate passing them is it
     for directions in SEARCH_DIRECTIONS:
-        candidates = _search(vertices, triangles, normals, models, directions @ axes, axes[0])
+        candidates, tried = [], []
+        for view_candidates in _search(vertices, triangles, normals, models, directions @ axes,
+                                       axes[0]):
+            candidates += view_candidates
+            best = max(view_candidates, key=lambda c: c.score, default=None)
+            if best is not None and best.score >= CONFIDENT:
+                # a face seen this well is refined before rendering the other views
+                tried.append(best)
+                found = _refined(vertices, triangles, normals, models, best)
+                if found is not None:
+                    return found
         for candidate in sorted(candidates, key=lambda c: -c.score)[:CANDIDATES]:
-            # the checks on the close render are strict: the first candidate passing them is it
-            found = _refined(vertices, triangles, normals, models, candidate)
+            found = None if any(candidate is t for t in tried) else \
+                _refined(vertices, triangles, normals, models, candidate)
             if found is not None:
                 return found
     raise ExCloneError(NOT_FOUND)
@@ -173,17 +189,18 @@ def _whole_view(vertices, direction, longest):
 
 
 def _search(vertices, triangles, normals, models, directions, longest):
-    """Every detection in the views from these directions, in every roll and crop."""
-    candidates = []
+    """Per view from these directions (one at a time, rendered when asked for): the
+    detections in every roll and crop of it."""
     for direction in directions:
         view = render(vertices, triangles, _whole_view(vertices, direction, longest), normals)
+        candidates = []
         for roll in range(4):
             image = _turned(view.image, roll)
             for crop_image, offset in _crops(image):
                 for detection in models.detector.detect(crop_image):
                     unrolled = _unrolled(detection, offset, roll, RENDER_SIZE)
                     candidates.append(_Candidate(detection.score, view, unrolled))
-    return candidates
+        yield candidates
 
 
 def _turned(image, roll):
