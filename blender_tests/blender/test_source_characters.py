@@ -14,6 +14,11 @@ motion is the source's: at every named landmark the unit moves, the clone moves 
 for a smile's corners and a raised brow, down for a closing lid), and over the face the clone's
 motion points where the source's does at the corresponding points, at the same size relative to
 the face. Skipped without the shared data. Run with -s to see the figures."""
+import json
+import os
+import re
+import subprocess
+import sys
 from functools import lru_cache
 
 import bpy
@@ -21,8 +26,9 @@ import numpy as np
 import pytest
 
 from blender_tests.helpers.character_files import load_into_scene
-from blender_tests.helpers.paths import SHARED_DATA
+from blender_tests.helpers.paths import REPO_ROOT, SHARED_DATA
 from exclone_addon.blender import character, files, mesh_io, workflow
+from exclone_addon.blender import landmarks as stored_landmarks
 from exclone_addon.core import data, expression_measures as em
 from exclone_addon.core.cloning import clone_expressions
 from exclone_addon.core.library import load_library
@@ -280,3 +286,45 @@ def test_the_clone_operator_takes_the_body_as_its_source():
     down = -closing[marks["eyelid_upper_left"], 1]
     assert down > 0.01 * diagonal
     assert np.linalg.norm(closing[marks["eyelid_upper_right"]]) < OTHER_SIDE * down
+
+
+def test_the_command_line_takes_the_body_as_its_source(tmp_path):
+    """batch_clone.py --source the body file: the report names the source's head region, its
+    landmarks are given in the body's own numbering (on its head: a run can be repeated with
+    them as --landmarks), and the mouth opens."""
+    out = tmp_path / "head.blend"
+    done = subprocess.run([sys.executable, str(REPO_ROOT / "scripts" / "batch_clone.py"),
+                           "--source", str(SOURCE_FILE), "--shapes", "mouth-open,eye-left-closure",
+                           "--out", str(out), "--no-preview"],
+                          capture_output=True, text=True, timeout=900,
+                          env=dict(os.environ, PYTHONDONTWRITEBYTECODE="1"))
+    assert done.returncode == 0, done.stderr[-2000:]
+    report = json.loads(out.with_suffix(".json").read_text())
+    assert report["inputs"]["source"] == f"{SOURCE_FILE}:Body"
+    assert re.fullmatch(r"head region: [3-5],\d{3} of 13,380 vertices",
+                        report["inputs"]["source_region"])
+    assert report["counts"]["source_vertices"] < 6000
+    library = source()
+    marks = dict(zip(report["landmarks"]["names"], report["landmarks"]["source"]))
+    assert np.isin(list(marks.values()), library.head.vertex_ids).all()
+    assert marks["nose_tip"] == library.head.own_ids(
+        [library.automatic_landmarks[1][library.automatic_landmarks[0].index("nose_tip")]])[0]
+    found = report["measures"]["expressions"]
+    assert found["mouth-open"]["lip_gap"] > LIPS_PART
+    assert found["eye-left-closure"]["eyelid_gap_left"] <= CLOSED
+
+
+def test_auto_landmarks_put_the_bodys_on_its_face():
+    """Auto Landmarks with the body as the source object: its landmarks are the ones Clone uses
+    (on the head region of its found face), stored in the body's own numbering."""
+    library = source()                  # first: it reads the file into a fresh scene
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    body = load_into_scene(SOURCE_FILE)["Body"]
+    head = mesh_io.object_from_mesh("head", read_obj(data.DEMO_HEAD_FILE))
+    bpy.context.scene.exclone.source_mode = 'OBJECT'
+    bpy.context.view_layer.objects.active = head
+    for obj in (head, body):
+        obj.select_set(True)
+    assert bpy.ops.exclone.auto_landmarks() == {'FINISHED'}
+    names, ids = library.automatic_landmarks
+    assert stored_landmarks.stored(body) == dict(zip(names, library.head.own_ids(ids).tolist()))

@@ -377,7 +377,7 @@ class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
         found = {}   # every object's landmarks first: an error leaves all of them as they were
         for obj in sources:
             try:
-                found[obj] = stored_landmarks.detect(workflow.basis_mesh(obj, obj.name))
+                found[obj] = workflow.source_landmarks(obj)     # as Clone finds them
             except Exception as exc:
                 return failed(self, exc, about=obj.name)
         try:        # the target is a character: its face found, landmarks on the head (as Clone)

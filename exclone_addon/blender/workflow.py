@@ -257,6 +257,16 @@ def target_landmarks(context, exclude=()):
     return objects[face.part], face_landmarks(face)
 
 
+def source_landmarks(obj):
+    """{name: vertex id of obj} of a source object: its automatic landmarks as Clone finds them
+    (object_source: on the head region of the face found on it, with the face's guide), else,
+    where no face is found, on its whole mesh. Raises ExCloneError."""
+    face = character_face(character.parts([obj]))
+    if face.guide is None:
+        return stored_landmarks.detect(basis_mesh(obj, obj.name))
+    return face_landmarks(face)
+
+
 def face_landmarks(face):
     """{name: vertex id of the face's object} of a CharacterFace: its automatic landmarks as
     Clone finds them, on its head region with its guide. Raises ExCloneError."""
