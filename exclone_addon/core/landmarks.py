@@ -11,6 +11,7 @@ of head, no ear tips) are left out.
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.ndimage import uniform_filter1d
+from scipy.signal import find_peaks
 from scipy.spatial import cKDTree
 
 from . import data
@@ -85,14 +86,6 @@ def _profile(segments, walk_axis, bin_size):
     return centres, zmax, pts
 
 
-def _peaks(values, prominence):
-    """Indices of scipy.signal.find_peaks with this prominence. Imported here, on first use:
-    scipy.signal imports scipy.stats (about 0.4 s), which a clone whose landmarks come from a
-    found face or the user never needs."""
-    from scipy.signal import find_peaks
-    return find_peaks(values, prominence=prominence)[0]
-
-
 def _walk(centres, zbin, pts, start, direction, prominence, smooth_bins):
     """Peaks and valleys of z met walking from `start` in `direction` (+1/-1) along a profile.
 
@@ -115,7 +108,8 @@ def _walk(centres, zbin, pts, start, direction, prominence, smooth_bins):
     def nearest_real(k):
         return pts[ahead[real[np.argmin(np.abs(real - k))]]]
 
-    peaks, valleys = _peaks(z[ahead], prominence), _peaks(-z[ahead], prominence)
+    peaks, _ = find_peaks(z[ahead], prominence=prominence)
+    valleys, _ = find_peaks(-z[ahead], prominence=prominence)
     return [nearest_real(k) for k in peaks], [nearest_real(k) for k in valleys]
 
 
@@ -137,7 +131,7 @@ def _crease(profile, start, direction, near, far, prominence, smooth_bins, cliff
     def nearest_real(k):
         return pts[real[np.argmin(np.abs(real - k))]]
 
-    valleys = _peaks(-zs[window], prominence)
+    valleys, _ = find_peaks(-zs[window], prominence=prominence)
     if cliff is not None:
         drops = np.flatnonzero(np.diff(z[window]) < -cliff)
         if len(drops) and (not len(valleys) or drops[0] < valleys[0]):
