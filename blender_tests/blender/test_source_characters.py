@@ -46,28 +46,30 @@ TARGETS = ("demo_head", "ict_neutral")
 STILL = 1e-4            # x the diagonal: the most anything outside the solved region may move
 STRETCH_BAR = 2.5       # the issue's bar: the clone's stretch beyond the source's own
 FLIP_MARGIN = 3         # triangles beyond the source's own flips of the same unit
-CLOSED = 0.1            # the issue's bar: a closing eye leaves at most this share of its open height
+CLOSED = 0.1            # the issue's bar: a closing eye leaves at most this share of its opening
+CROSSED = -0.3          # reached: its lids cross by no more than this share (demo head 22-24%)
 OPEN_EYE = 0.06         # the other eye's gap stays within this of its rest (1)
 LIPS_PART = 0.02        # mouth-open parts the lips by at least this share of the diagonal
 SAME_WAY = 0.85         # mean cosine of the clone's and the source's motion where the source moves
 MOVING = 0.25           # ... where the source's motion is above this share of its largest
 SIZE = (0.6, 1.6)       # the clone's motion / the source's (each x its face's outer eye corners'
                         # distance)
-# (target, unit) -> the figures reached where a bar above is not (measured, not tuned away):
-# on the demo head the worst edge at the lids' and lips' inner rims (as the library's own jawOpen
-# onto it, 2.9-3.7x) and the lids closing past each other (MakeHuman's units are made for the
-# adult head: on the child's own head the lids close to 6-10%, on the demo head they cross by
-# 22%); on the ICT neutral the lids fold instead of closing, the mouth-open crumples the cheeks,
-# the pursing pulls the mouth sideways and the smile's motion spreads (see the contact sheets in
-# the report of issue #10 item 3). Checked with margins: excess stretch x 1.25, flips + 10%,
+# (target, unit) -> the figures reached where a bar above is not (measured, not tuned away).
+# On the demo head: the worst edge at the lids' and lips' inner rims (mouth-open: a few vertices
+# of the upper lip's inside, near the corners, correspond to the source's mouth inside below its
+# midline and hang down with the jaw), and the lids closing past each other (MakeHuman's units
+# are made for the adult head: on the child's own head the lids close to 6-10%, on the demo head
+# they cross by 22%). On the ICT neutral (seen on front renders): the lids fold instead of
+# closing, the mouth-open crumples the cheeks, the pursing pulls the mouth sideways and the
+# smile's motion spreads. Checked with margins: excess stretch x 1.25, flips + 10%,
 # eyelid gap + 0.05, cosine - 0.05, size x 0.8. The figures are the worst of several runs with
 # numpy 1.26 and numpy 2: worst-edge and flip counts move between them (the demo head's eye
-# closures 2.7-2.8x with numpy 1.26, 3.55x with numpy 2; on the ICT neutral eye-left-closure
-# 60-70 flips, mouth-open 5.4-7.3x, mouth-depression 6 flips with numpy 1.26, 36-41 with numpy 2).
+# closures 2.7-3.1x with numpy 1.26, 3.55x with numpy 2; on the ICT neutral eye-left-closure
+# 60-70 flips, mouth-open 5.4-7.8x, mouth-depression 6 flips with numpy 1.26, 36-41 with numpy 2).
 REACHED = {
     ("demo_head", "mouth-open"): {"excess_stretch": 2.96},
-    ("demo_head", "eye-left-closure"): {"excess_stretch": 3.55, "flipped_triangles": 23},
-    ("demo_head", "eye-right-closure"): {"excess_stretch": 3.55, "flipped_triangles": 23},
+    ("demo_head", "eye-left-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25},
+    ("demo_head", "eye-right-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25},
     ("ict_neutral", "eye-left-closure"): {"eyelid_gap": 0.44, "flipped_triangles": 70,
                                           "cosine": 0.515, "size": 0.43},
     ("ict_neutral", "eye-right-closure"): {"eyelid_gap": 0.50, "flipped_triangles": 70,
@@ -192,7 +194,8 @@ def test_measures(target_name, unit):
     side = {"eye-left-closure": ("left", "right"), "eye-right-closure": ("right", "left")}
     if unit in side:
         closing, other = side[unit]
-        assert row[f"eyelid_gap_{closing}"] <= reached(target_name, unit, "eyelid_gap", CLOSED)
+        assert CROSSED <= row[f"eyelid_gap_{closing}"] <= reached(target_name, unit, "eyelid_gap",
+                                                                  CLOSED), row
         assert abs(row[f"eyelid_gap_{other}"] - 1.0) <= OPEN_EYE, row
     elif not unit.startswith("eyebrows"):        # a raised brow opens its eye a little
         assert all(abs(row[f"eyelid_gap_{eye}"] - 1.0) <= OPEN_EYE for eye in ("left", "right"))
