@@ -43,15 +43,22 @@ class Correspondence:
                              shape=(n_target, n_source))
 
 
-def _matches(origin, ids, other, samples, max_distance):
+def _lookups(origin, ids, other, samples):
     """For sample points inside the `origin` Surface's triangles `ids`: (index into ids, `other`
-    triangle) of each valid match (closer than max_distance, facing the same way)."""
+    triangle, distance, whether the two face the same way) of each sample's closest point."""
     corners = origin.vertices[origin.triangles[ids]]                    # (m, 3, 3)
     points = np.einsum("sk,tkd->tsd", samples, corners).reshape(-1, 3)  # (m*k, 3)
     _, tri, dist, _ = other.closest(points)
     owner = np.repeat(np.arange(len(ids)), len(samples))
     facing = np.einsum("ij,ij->i", origin.triangle_normals[ids][owner], other.triangle_normals[tri])
-    ok = (dist < max_distance) & (facing > 0)
+    return owner, tri, dist, facing > 0
+
+
+def _matches(origin, ids, other, samples, max_distance):
+    """(index into ids, `other` triangle) of each valid match of _lookups (closer than
+    max_distance, facing the same way)."""
+    owner, tri, dist, facing = _lookups(origin, ids, other, samples)
+    ok = (dist < max_distance) & facing
     return owner[ok], tri[ok]
 
 
@@ -61,19 +68,18 @@ def _target_matches(source, target, ids, max_distance):
     or more (in a smaller one they land where the centroid does: the centroid weighs for all)
     whose centroid is near enough that one of them may match (a sample lies at most `reach`
     from the centroid: beyond max_distance + reach none can)."""
-    c_from, c_to = _matches(target, ids, source, SAMPLES[:1], max_distance)
+    _, c_to, c_dist, facing = _lookups(target, ids, source, SAMPLES[:1])
+    c_from = np.flatnonzero((c_dist < max_distance) & facing)
     corners = target.vertices[target.triangles[ids]]
-    centre = corners.mean(axis=1)
     # a sample's weights differ from the centroid's by d (summing to 0): it lies at most
     # |d|_1 times the furthest corner's distance from the centroid
-    reach = np.linalg.norm(corners - centre[:, None], axis=2).max(axis=1) * np.abs(
+    reach = np.linalg.norm(corners - corners.mean(axis=1)[:, None], axis=2).max(axis=1) * np.abs(
         SAMPLES[1:] - SAMPLES[0]).sum(axis=1).max()
     large = reach >= SMALL_TRIANGLE * source.mean_edge_length
-    near = source.closest(centre[large])[2] < max_distance + reach[large]
-    split = np.flatnonzero(large)[near]
+    split = np.flatnonzero(large & (c_dist < max_distance + reach))
     s_from, s_to = _matches(target, ids[split], source, SAMPLES[1:], max_distance)
     weights = np.where(large[c_from], 1.0, len(SAMPLES)) / len(SAMPLES)
-    return (np.r_[c_from, split[s_from]], np.r_[c_to, s_to],
+    return (np.r_[c_from, split[s_from]], np.r_[c_to[c_from], s_to],
             np.r_[weights, np.full(len(s_from), 1.0 / len(SAMPLES))])
 
 
