@@ -156,7 +156,7 @@ RENDER_DISTANCE_CM = 50.0      # the head's centre from the camera: a face about
 BUMP_FRAMES = 20               # each shape rises and falls over this many frames
 BUMP_SPACING = 10              # a new shape starts every this many frames (two overlap)
 RENDER_CACHE = Path(tempfile.gettempdir()) / "exclone_rendered_takes"
-RENDER_VERSION = 1             # bump when the renderer or a take's recipe changes
+RENDER_VERSION = 2             # bump when the renderer or a take's recipe changes
 
 
 def unit_keys(names, unit):
@@ -187,10 +187,13 @@ def take_recipe(kind, frames=None, seed=3):
     if kind == "still":
         angles = np.zeros((frames, 3))
     else:
+        # the turns start from zero where calibration ends (it ends near zero too): a head
+        # cannot jump 30 deg between two frames (version 1 did, and every filter lags a jump)
         size = 30.0 if kind == "turning" else 25.0
-        angles = np.column_stack((size * np.sin(2 * np.pi * 0.23 * t),
-                                  0.7 * size * np.sin(2 * np.pi * 0.17 * t + 1),
-                                  0.4 * size * np.sin(2 * np.pi * 0.13 * t + 2)))
+        since = t - CALIBRATION_FRAMES / FPS
+        angles = np.column_stack((size * np.sin(2 * np.pi * 0.23 * since),
+                                  0.7 * size * np.sin(2 * np.pi * 0.17 * since),
+                                  0.4 * size * np.sin(2 * np.pi * 0.13 * since)))
     c = t[:CALIBRATION_FRAMES]
     angles[:CALIBRATION_FRAMES] = np.column_stack((10 * np.sin(2 * np.pi * c), 6 * np.sin(4 * np.pi * c),
                                                    0 * c))

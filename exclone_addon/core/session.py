@@ -269,7 +269,8 @@ class FaceTrackingSession:
         if points.ndim != 2 or points.shape[0] != face_models.NUM_LANDMARKS or points.shape[1] not in (2, 3):
             raise ExCloneError(f"expected ({face_models.NUM_LANDMARKS}, 2 or 3) landmarks, "
                                f"got {points.shape}")
-        if points.shape[1] == 2:
+        depth = points.shape[1] == 3
+        if not depth:
             points = np.column_stack((points, np.zeros(len(points))))
         if image_size is None:
             if self.camera is None:
@@ -277,7 +278,8 @@ class FaceTrackingSession:
             image_size = (2 * self.camera.cx, 2 * self.camera.cy)
         self._use_image_size(*image_size, name="the landmarks' image")
         stage_ms = dict.fromkeys(STAGES, 0.0)
-        return self._track(points, timestamp, stage_ms, restart=self._previous_fit is None)
+        return self._track(points, timestamp, stage_ms, restart=self._previous_fit is None,
+                           depth=depth)
 
     def _lost(self, stage_ms):
         self._roi = None
@@ -291,18 +293,20 @@ class FaceTrackingSession:
                            stage_ms=stage_ms, status=status)
 
     # -- shape fit and calibration (docs/method.md §11), weights (§12)
-    def _track(self, points, timestamp, stage_ms, restart, eye_points=None):
+    def _track(self, points, timestamp, stage_ms, restart, eye_points=None, depth=True):
+        # the fit reads the points' relative depth (FaceMesh's z) too, when they have one
+        observed = points if depth else points[:, :2]
         if restart or self.still_images:
             self._reset_filters()
             if self.still_images:
                 self._previous_fit = None
         start = time.perf_counter()
-        fit = self._fitter.fit(points[:, :2], previous=self._previous_fit)
+        fit = self._fitter.fit(observed, previous=self._previous_fit)
         self._previous_fit = fit
         stage_ms["fit"] = 1000 * (time.perf_counter() - start)
         reading = eyes.read_eyes(eye_points) if eye_points is not None else None
         if self._pending:
-            fit = self._calibration_frame(points, reading, fit, stage_ms)
+            fit = self._calibration_frame(observed, reading, fit, stage_ms)
         elif reading is not None and self.eye_neutral is not None:
             reading = self._eye_geometry.frontal(reading, fit.rotation, fit.translation,
                                                  self.eye_neutral.iris)
@@ -328,7 +332,7 @@ class FaceTrackingSession:
     def _calibration_frame(self, points, reading, fit, stage_ms):
         """Collects a calibration frame (its points and eye reading); on the last one
         calibrates. Returns the frame's fit (refitted by the calibration when it ran)."""
-        self._calibration_points.append(points[:, :2].copy())
+        self._calibration_points.append(points.copy())
         self._calibration_eyes.append(reading)
         if len(self._calibration_points) < self._pending:
             return fit
