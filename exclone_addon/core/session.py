@@ -21,8 +21,7 @@ from .eyes import EyeGeometry
 from .errors import ExCloneError
 from .retarget import WeightSolver, map_blendshapes, refine_take
 from .tracker_model import load_tracker_model
-from .tracking import (Camera, OneEuroFilter, RotationFilter, ShapeFitter, ShapeModel,
-                       calibrate_neutral)
+from .tracking import Camera, OneEuroFilter, RotationFilter, ShapeFitter, calibrate_neutral
 
 # The model's axes (canonical face: +Y up, looking along +Z, +X the subject's left) -> Blender's
 # (+Z up, looking along -Y, +X the subject's left): a quarter turn about x.
@@ -184,8 +183,7 @@ class FaceTrackingSession:
                                f"{self._frame_size[0]}x{self._frame_size[1]}: a take's frames "
                                "must all be one size")
         if self._fitter is None:
-            model = self.model if self.neutral is None else ShapeModel(
-                self.neutral, self.model.modes, self.model.eigenvalues)
+            model = self.model if self.neutral is None else self.model.with_mean(self.neutral)
             self._fitter = ShapeFitter(model, self.camera, tolerance_px=FIT_TOLERANCE_PX)
 
     def _use_camera(self, camera):

@@ -65,10 +65,11 @@ class TrackerModel:
     @classmethod
     def from_locations(cls, locations, library=None):
         library = library or load_library()
-        canonical = data.canonical_face().vertices
-        model = expression_shape_model(canonical, locations.sample(library.mesh.vertices),
-                                       locations.sample(library.deltas))
-        return cls(model, canonical)
+        canonical = data.canonical_face()
+        model = expression_shape_model(canonical.vertices, locations.sample(library.mesh.vertices),
+                                       locations.sample(library.deltas),
+                                       triangles=canonical.triangles())
+        return cls(model, canonical.vertices)
 
 
 @functools.lru_cache(maxsize=1)
