@@ -9,8 +9,8 @@ filter removes jitter; Kabsch removes head motion against the neutral.
 
 With three columns the points carry FaceMesh's depth (relative to the face, in pixels at the
 image's scale) as a further observation: measured on rendered takes, 2D points alone read the
-head's pitch at 0.77 of its size (the model's 2D points slide as the head turns), with the depth
-at 0.85-0.87.
+head's pitch at 0.77-0.78 of its size (FaceMesh's 2D points slide as the head turns; the true
+points' projections give 1.00), with the depth 0.85-0.87.
 
 Scale is not a separate pose parameter: from one perspective view a bigger face further away
 looks the same, so the actor's size goes into the calibrated neutral and distance into depth.
@@ -188,9 +188,10 @@ class ShapeFitter:
     With points (n, 3), depth_weight * sum_i w_i (d_i - z_i)^2 joins it: d_i the fitted point's
     depth relative to the face, in pixels (f / t_z times its camera depth less the weighted mean),
     z_i the observed relative depth less its weighted mean (FaceMesh's z: what matters is the
-    shape of the depth, its offset is free). depth_weight 0.3: the depth is the image model's
-    inference, not seen in the image (on the rendered takes 1.0 cost expression accuracy; 0.3
-    improved pose and kept it).
+    shape of the depth, its offset is free). depth_weight 0.1: the depth is the image model's
+    inference, not seen in the image; of 1.0, 0.3 and 0.1 on the rendered takes, 0.1 keeps the
+    expressions' accuracy (1.0 and 0.3 cost up to 0.06 of correlation) and most of the pose's
+    gain.
     With the model's triangles, each point's weight is scaled by how squarely it faces the
     camera at the starting pose (FACING_COSINE).
     Robust weights w_i come from the point residuals: Huber while the pose is still being found
@@ -201,7 +202,7 @@ class ShapeFitter:
     """
 
     def __init__(self, model, camera, beta=1.0, min_scale_px=0.5, max_iterations=30,
-                 tolerance_px=1e-3, depth_weight=0.3):
+                 tolerance_px=1e-3, depth_weight=0.1):
         self.model = model
         self.depth_weight = float(depth_weight)
         self.camera = camera
