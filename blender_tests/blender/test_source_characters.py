@@ -55,30 +55,30 @@ MOVING = 0.25           # ... where the source's motion is above this share of i
 SIZE = (0.6, 1.6)       # the clone's motion / the source's (each x its face's outer eye corners'
                         # distance)
 # (target, unit) -> the figures reached where a bar above is not (measured, not tuned away).
-# On the demo head: the worst edge at the lids' and lips' inner rims (mouth-open: a few vertices
-# of the upper lip's inside, near the corners, correspond to the source's mouth inside below its
-# midline and hang down with the jaw), and the lids closing past each other (MakeHuman's units
-# are made for the adult head: on the child's own head the lids close to 6-10%, on the demo head
-# they cross by 22%). On the ICT neutral (seen on front renders): the lids fold instead of
-# closing, the mouth-open crumples the cheeks, the pursing pulls the mouth sideways and the
-# smile's motion spreads. Checked with margins: excess stretch x 1.25, flips + 10%,
-# eyelid gap + 0.05, cosine - 0.05, size x 0.8. The figures are the worst of several runs with
-# numpy 1.26 and numpy 2: worst-edge and flip counts move between them (the demo head's eye
-# closures 2.7-3.1x with numpy 1.26, 3.55x with numpy 2; on the ICT neutral eye-left-closure
-# 60-70 flips, mouth-open 5.4-7.8x, mouth-depression 6 flips with numpy 1.26, 36-41 with numpy 2).
+# On the demo head: the worst edge at the lids' inner rims, and the lids closing past each other
+# (MakeHuman's units are made for the adult head: on the child's own head the lids close to
+# 6-10%, on the demo head they cross by 22%); its mouth-open meets the bar since the vertex map
+# measures an image's edges along the source (1.6-2.1x; it was 2.8-3.0x, the upper lip's inside
+# hanging down with the jaw in spikes where its corners' images lay across the closed lips). On
+# the ICT neutral (seen on front renders): the lids fold instead of closing, the mouth-open
+# crumples the cheeks beside the corners (nearly all its flips have a corner whose image lies on
+# a triangle the source's own unit turns over, at the ICT neutral's 3x density), the pursing
+# pulls the mouth sideways and the smile's motion spreads. Checked with margins: excess stretch x 1.25, flips + 10%,
+# eyelid gap + 0.05, cosine - 0.05, size x 0.8. The figures are the worst of runs with numpy 1.26
+# and numpy 2: worst-edge and flip counts move between them (the demo head's eye closures
+# 2.7-3.1x with numpy 1.26, 3.55x with numpy 2; on the ICT neutral eye-left-closure 60-70 flips,
+# mouth-open 6.45x and 546 flips with numpy 1.26, 4.48x and 541 with numpy 2).
 REACHED = {
-    ("demo_head", "mouth-open"): {"excess_stretch": 2.96},
     ("demo_head", "eye-left-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25},
     ("demo_head", "eye-right-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25},
     ("ict_neutral", "eye-left-closure"): {"eyelid_gap": 0.44, "flipped_triangles": 70,
                                           "cosine": 0.515, "size": 0.43},
     ("ict_neutral", "eye-right-closure"): {"eyelid_gap": 0.50, "flipped_triangles": 70,
                                            "cosine": 0.519, "size": 0.42},
-    ("ict_neutral", "mouth-open"): {"excess_stretch": 7.33, "flipped_triangles": 578,
-                                    "cosine": 0.847},
-    ("ict_neutral", "mouth-depression"): {"flipped_triangles": 41},
+    ("ict_neutral", "mouth-open"): {"excess_stretch": 6.45, "flipped_triangles": 546,
+                                    "cosine": 0.841},
     ("ict_neutral", "mouth-corner-puller"): {"excess_stretch": 2.73, "cosine": 0.649},
-    ("ict_neutral", "mouth-pursing"): {"flipped_triangles": 14, "cosine": 0.536},
+    ("ict_neutral", "mouth-pursing"): {"cosine": 0.536},
 }
 # unit -> (landmark, axis of the face's frame (0 left, 1 up, 2 forward), sign) it must move along,
 # as the source moves it there; None: the mean motion where the source's motion is MOVING

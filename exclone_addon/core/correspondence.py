@@ -2,10 +2,13 @@
 
 Vertex map (ExClone's default): every target vertex is located on the registered source surface
 (triangle + barycentric coordinates). A target triangle whose three corners map plausibly (same
-facing, no more than 3x stretched or shrunk) takes the gradient of its image triangle on the
-source, sampled at exactly its own resolution: exact for identical faces and much better than
-averaging source gradients where the deformation varies inside one target triangle (eyelids,
-mouth corners).
+facing, no more than 3x stretched or shrunk, each edge's image measured along the source surface
+too) takes the gradient of its image triangle on the source, sampled at exactly its own
+resolution: exact for identical faces and much better than averaging source gradients where the
+deformation varies inside one target triangle (eyelids, mouth corners). Measured along the
+surface, an image that spans a closed seam (its corners on the upper and on the lower lip, which
+touch at rest) is seen to be torn: its gradient would pull the target's lip apart when the
+mouth opens.
 
 Triangle pairs (the method's), used where the vertex map is not plausible: pairs are found in
 both directions so every target triangle in the covered region gets a source triangle: each
@@ -19,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.sparse.csgraph import dijkstra
 
 from .mesh import corner_normals
 from .proximity import interpolate
@@ -29,6 +33,8 @@ SAMPLES /= SAMPLES.sum(axis=1, keepdims=True)
 # A target triangle whose samples lie within this many source edge lengths of its centroid
 # is looked up at its centroid alone (which then weighs like all the samples).
 SMALL_TRIANGLE = 0.25
+# Paths along the source are found this many (start, vertex) distances at a time.
+GRAPH_CELLS = 1 << 22
 
 
 @dataclass
@@ -128,15 +134,19 @@ def map_vertices(source, target, max_distance):
 
 def mapped_triangles(vertex_map, source, target, stretch=3.0):
     """Target triangles whose corners' images on the source form a plausible triangle: same
-    facing, edges and area within `stretch` (squared for the area) of the target's own."""
+    facing, edges and area within `stretch` (squared for the area) of the target's own, each
+    edge's image measured along the source surface (_apart_along): where two sides of a seam
+    touch (closed lips, closed lids), corners on either side have images a hair apart in space
+    but far apart on the source, and such an image tears apart when the seam opens."""
     tris = target.triangles
     ok = vertex_map.valid[tris].all(axis=1)
     image = np.zeros(tris.shape + (3,))
     image[ok] = vertex_map.sample(source.vertices, source.triangles,
                                   tris[ok].ravel()).reshape(-1, 3, 3)
     own = target.vertices[tris]
+    lengths = _edge_lengths(own)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = _edge_lengths(image) / _edge_lengths(own)
+        ratio = _edge_lengths(image) / lengths
     ok &= np.all((ratio > 1 / stretch) & (ratio < stretch), axis=1)
     image_n, own_n = corner_normals(image, normalize=False), corner_normals(own, normalize=False)
     ok &= source.sign * target.sign * np.einsum("ij,ij->i", image_n, own_n) > 0
@@ -144,7 +154,82 @@ def mapped_triangles(vertex_map, source, target, stretch=3.0):
     with np.errstate(divide="ignore", invalid="ignore"):
         area_ratio = np.linalg.norm(image_n, axis=1) / np.linalg.norm(own_n, axis=1)
     ok &= (area_ratio > 1 / stretch ** 2) & (area_ratio < stretch ** 2)
+    ok[ok] = ~_apart_along(vertex_map, source, tris[ok], image[ok], stretch * lengths[ok]).any(
+        axis=1)
     return ok
+
+
+def _apart_along(vertex_map, source, triangles, image, limit):
+    """(T, 3) True where the images of the edges v1v2, v2v3, v3v1 of target triangles (T, 3)
+    (their corners' images `image` (T, 3, 3)) lie surely `limit` (T, 3) or further apart along
+    the source surface. Images in source triangles that share a corner are near. Otherwise the
+    path from each corner u of the first image's triangle to each corner v of the second's along
+    the source's edges (Dijkstra), less the images' distances from u and from v, bounds the path
+    between the images from below: the least of these bounds is compared, so near images are
+    never taken for far ones, and two sides of a seam (a long way round) are told apart."""
+    ends = np.sort(np.stack([triangles, triangles[:, [1, 2, 0]]], axis=-1).reshape(-1, 2), axis=1)
+    n = len(vertex_map.triangle)
+    keys, edge_of = np.unique(ends[:, 0] * n + ends[:, 1], return_inverse=True)
+    edges = np.column_stack([keys // n, keys % n])
+    points = np.zeros((vertex_map.triangle.shape[0], 3))
+    points[triangles.ravel()] = image.reshape(-1, 3)
+    reach = np.full(len(edges), np.inf)
+    np.minimum.at(reach, edge_of, limit.ravel())
+    corners = source.triangles[vertex_map.triangle[edges]]                      # (k, 2, 3)
+    apart = np.flatnonzero(~_touching(corners[:, 0], corners[:, 1]))
+    far = np.zeros(len(edges), dtype=bool)
+    if len(apart):
+        far[apart] = _path_bound(source, corners[apart], points[edges[apart]],
+                                 reach[apart]) >= reach[apart]
+    return far[edge_of].reshape(-1, 3)
+
+
+def _touching(first, second):
+    """(k,) True where source triangles of corners first (k, 3) and second (k, 3) share one."""
+    return (first[:, :, None] == second[:, None, :]).any(axis=(1, 2))
+
+
+def _path_bound(source, corners, points, reach):
+    """(k,) a lower bound of the path along the source between two points (points (k, 2, 3),
+    in the source triangles of corners (k, 2, 3)): the least over corner pairs (u, v) of the
+    path along the source's edges from u to v less |a - u| and |b - v|; inf where that is
+    `reach` (k,) or more for certain (the search goes no further than needed)."""
+    # the source's edges as a graph over its surface's vertices only (numbered 0..m-1)
+    used = source.used
+    triangles, corners = np.searchsorted(used, source.triangles), np.searchsorted(used, corners)
+    vertices = source.vertices[used]
+    graph = sp.csr_matrix((np.ones(6 * len(triangles)), (
+        triangles[:, [0, 1, 2, 1, 2, 0]].ravel(), triangles[:, [1, 2, 0, 0, 1, 2]].ravel())),
+        shape=(len(used), len(used)))
+    graph.sum_duplicates()
+    graph.data = np.linalg.norm(
+        vertices[graph.indices] - vertices[np.repeat(np.arange(len(used)), np.diff(graph.indptr))],
+        axis=1)
+    offsets = np.linalg.norm(vertices[corners] - points[:, :, None], axis=3)      # (k, 2, 3)
+    # most images of neighbouring target vertices lie in source triangles whose corners are
+    # one or two source edges apart: those paths at once
+    first, second = np.repeat(corners[:, 0], 3, axis=1).ravel(), np.tile(corners[:, 1], 3).ravel()
+    step = np.asarray(graph[first, second]).ravel()
+    short = np.where(step > 0, step, np.inf)
+    via = graph[first].multiply(graph[second] > 0).tocoo()           # (pair, shared neighbour)
+    np.minimum.at(short, via.row, via.data + np.linalg.norm(
+        vertices[via.col] - vertices[second[via.row]], axis=1))
+    detour = offsets[:, 0, :, None] + offsets[:, 1, None, :]                      # (k, 3, 3)
+    bound = (short.reshape(-1, 3, 3) - detour).min(axis=(1, 2))
+    # the rest by Dijkstra from the first image's nearest corner, nearest searches first, so
+    # each batch looks no further than its own pairs need
+    rest = np.flatnonzero(bound >= reach)
+    start = corners[rest, 0, np.argmin(offsets[rest, 0], axis=1)]
+    needed = reach[rest] + offsets[rest, 0].min(axis=1) + offsets[rest, 1].max(axis=1)
+    order = np.argsort(needed)
+    rows = max(1, GRAPH_CELLS // len(vertices))       # bounded memory: rows x vertices
+    for batch in np.array_split(order, -(-len(order) // rows)) if len(order) else ():
+        starts, slot = np.unique(start[batch], return_inverse=True)
+        near = dijkstra(graph, indices=starts, limit=float(needed[batch].max()))
+        along = near[slot.ravel()[:, None], corners[rest[batch], 1]]                  # (b, 3)
+        bound[rest[batch]] = (along - offsets[rest[batch], 0].min(axis=1)[:, None]
+                              - offsets[rest[batch], 1]).min(axis=1)
+    return bound
 
 
 def _edge_lengths(corners):
