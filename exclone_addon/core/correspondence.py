@@ -154,19 +154,17 @@ def mapped_triangles(vertex_map, source, target, stretch=3.0):
     with np.errstate(divide="ignore", invalid="ignore"):
         area_ratio = np.linalg.norm(image_n, axis=1) / np.linalg.norm(own_n, axis=1)
     ok &= (area_ratio > 1 / stretch ** 2) & (area_ratio < stretch ** 2)
-    ok[ok] = ~_apart_along(vertex_map, source, tris[ok], image[ok], stretch * lengths[ok]).any(
-        axis=1)
+    ok[ok] = ~_apart_along(vertex_map, source, target.vertices, tris[ok], image[ok],
+                           stretch * lengths[ok]).any(axis=1)
     return ok
 
 
-def _apart_along(vertex_map, source, triangles, image, limit):
+def _apart_along(vertex_map, source, target_vertices, triangles, image, limit):
     """(T, 3) True where the images of the edges v1v2, v2v3, v3v1 of target triangles (T, 3)
     (their corners' images `image` (T, 3, 3)) lie surely `limit` (T, 3) or further apart along
-    the source surface. Images in source triangles that share a corner are near. Otherwise the
-    path from each corner u of the first image's triangle to each corner v of the second's along
-    the source's edges (Dijkstra), less the images' distances from u and from v, bounds the path
-    between the images from below: the least of these bounds is compared, so near images are
-    never taken for far ones, and two sides of a seam (a long way round) are told apart."""
+    the source surface. Images in source triangles that share a corner are near; the others are
+    bounded by _path_bound, from below where they may be far, so near images are never taken
+    for far ones, and two sides of a seam (a long way round) are told apart."""
     ends = np.sort(np.stack([triangles, triangles[:, [1, 2, 0]]], axis=-1).reshape(-1, 2), axis=1)
     n = len(vertex_map.triangle)
     keys, edge_of = np.unique(ends[:, 0] * n + ends[:, 1], return_inverse=True)
@@ -179,8 +177,8 @@ def _apart_along(vertex_map, source, triangles, image, limit):
     apart = np.flatnonzero(~_touching(corners[:, 0], corners[:, 1]))
     far = np.zeros(len(edges), dtype=bool)
     if len(apart):
-        far[apart] = _path_bound(source, corners[apart], points[edges[apart]],
-                                 reach[apart]) >= reach[apart]
+        far[apart] = _path_bound(source, corners[apart], points[edges[apart]], reach[apart],
+                                 target_vertices[edges[apart]]) >= reach[apart]
     return far[edge_of].reshape(-1, 3)
 
 
@@ -189,36 +187,24 @@ def _touching(first, second):
     return (first[:, :, None] == second[:, None, :]).any(axis=(1, 2))
 
 
-def _path_bound(source, corners, points, reach):
-    """(k,) a lower bound of the path along the source between two points (points (k, 2, 3),
-    in the source triangles of corners (k, 2, 3)): the least over corner pairs (u, v) of the
-    path along the source's edges from u to v less |a - u| and |b - v|; inf where that is
-    `reach` (k,) or more for certain (the search goes no further than needed)."""
-    # the source's edges as a graph over its surface's vertices only (numbered 0..m-1)
-    used = source.used
-    triangles, corners = np.searchsorted(used, source.triangles), np.searchsorted(used, corners)
-    vertices = source.vertices[used]
-    graph = sp.csr_matrix((np.ones(6 * len(triangles)), (
-        triangles[:, [0, 1, 2, 1, 2, 0]].ravel(), triangles[:, [1, 2, 0, 0, 1, 2]].ravel())),
-        shape=(len(used), len(used)))
-    graph.sum_duplicates()
-    graph.data = np.linalg.norm(
-        vertices[graph.indices] - vertices[np.repeat(np.arange(len(used)), np.diff(graph.indptr))],
-        axis=1)
+def _path_bound(source, corners, points, reach, ends):
+    """(k,) a bound of the path along the source between two points (points (k, 2, 3), in the
+    source triangles of corners (k, 2, 3), the images of target edges ends (k, 2, 3)) that tells
+    whether it is `reach` (k,) or longer: where it is surely shorter, a length above the path (a
+    chain of short steps), else one below it, the least over corner pairs (u, v) of the path
+    along the source's edges from u to v less |a - u| and |b - v| (inf where that is `reach` or
+    more for certain: the search goes no further than needed)."""
+    used, graph = _edge_graph(source)
+    vertices, corners = source.vertices[used], np.searchsorted(used, corners)
     offsets = np.linalg.norm(vertices[corners] - points[:, :, None], axis=3)      # (k, 2, 3)
-    # most images of neighbouring target vertices lie in source triangles whose corners are
-    # one or two source edges apart: those paths at once
-    first, second = np.repeat(corners[:, 0], 3, axis=1).ravel(), np.tile(corners[:, 1], 3).ravel()
-    step = np.asarray(graph[first, second]).ravel()
-    short = np.where(step > 0, step, np.inf)
-    via = graph[first].multiply(graph[second] > 0).tocoo()           # (pair, shared neighbour)
-    np.minimum.at(short, via.row, via.data + np.linalg.norm(
-        vertices[via.col] - vertices[second[via.row]], axis=1))
     detour = offsets[:, 0, :, None] + offsets[:, 1, None, :]                      # (k, 3, 3)
-    bound = (short.reshape(-1, 3, 3) - detour).min(axis=(1, 2))
+    bound = (_short_paths(graph, vertices, corners[:, 0], corners[:, 1]) - detour).min(axis=(1, 2))
+    rest = np.flatnonzero(bound >= reach)
+    chain = _chain_length(source, used, graph, ends[rest], corners[rest], points[rest])
+    bound[rest] = chain
+    rest = rest[chain >= reach[rest]]
     # the rest by Dijkstra from the first image's nearest corner, nearest searches first, so
     # each batch looks no further than its own pairs need
-    rest = np.flatnonzero(bound >= reach)
     start = corners[rest, 0, np.argmin(offsets[rest, 0], axis=1)]
     needed = reach[rest] + offsets[rest, 0].min(axis=1) + offsets[rest, 1].max(axis=1)
     order = np.argsort(needed)
@@ -230,6 +216,61 @@ def _path_bound(source, corners, points, reach):
         bound[rest[batch]] = (along - offsets[rest[batch], 0].min(axis=1)[:, None]
                               - offsets[rest[batch], 1]).min(axis=1)
     return bound
+
+
+def _edge_graph(source):
+    """(the source surface's vertex ids (m,), sparse (m x m) of its edges' lengths, numbered
+    0..m-1 in that order)."""
+    used = source.used
+    triangles, vertices = np.searchsorted(used, source.triangles), source.vertices[used]
+    graph = sp.csr_matrix((np.ones(6 * len(triangles)), (
+        triangles[:, [0, 1, 2, 1, 2, 0]].ravel(), triangles[:, [1, 2, 0, 0, 1, 2]].ravel())),
+        shape=(len(used), len(used)))
+    graph.sum_duplicates()
+    graph.data = np.linalg.norm(
+        vertices[graph.indices] - vertices[np.repeat(np.arange(len(used)), np.diff(graph.indptr))],
+        axis=1)
+    return used, graph
+
+
+def _short_paths(graph, vertices, first, second):
+    """(k, 3, 3) the path along the graph's edges from each of the corners first (k, 3) to each
+    of second (k, 3): 0 for the same vertex, through one edge or two, else inf."""
+    first, second = np.repeat(first, 3, axis=1).ravel(), np.tile(second, 3).ravel()
+    step = np.asarray(graph[first, second]).ravel()
+    short = np.where(first == second, 0.0, np.where(step > 0, step, np.inf))
+    via = graph[first].multiply(graph[second] > 0).tocoo()           # (pair, shared neighbour)
+    np.minimum.at(short, via.row, via.data + np.linalg.norm(
+        vertices[via.col] - vertices[second[via.row]], axis=1))
+    return short.reshape(-1, 3, 3)
+
+
+def _chain_length(source, used, graph, ends, corners, points):
+    """(k,) the length of a path along the source from each image a to b (points (k, 2, 3) in
+    the triangles of corners (k, 2, 3), local numbering of _edge_graph) through the closest
+    source points of the target edge ends (k, 2, 3) at about one source edge length apart: each
+    step straight within a triangle or via the corners, one or two edges apart (inf if not)."""
+    length, vertices = np.full(len(ends), np.inf), source.vertices[used]
+    pieces = np.ceil(np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1) / source.mean_edge_length)
+    pieces = np.maximum(pieces, 2).astype(np.int64)
+    for count in np.unique(pieces):
+        ids = np.flatnonzero(pieces == count)
+        share = np.linspace(0.0, 1.0, count + 1)[1:-1]
+        inner = ends[ids, :1] + share[None, :, None] * (ends[ids, 1:] - ends[ids, :1])
+        met, triangle = source.closest(inner.reshape(-1, 3))[:2]
+        chain = np.concatenate([points[ids, :1], met.reshape(len(ids), -1, 3), points[ids, 1:]],
+                               axis=1).reshape(-1, 3)
+        on = np.concatenate([corners[ids, :1], np.searchsorted(used, source.triangles[
+            triangle]).reshape(len(ids), -1, 3), corners[ids, 1:]], axis=1).reshape(-1, 3)
+        here, there = np.arange(len(on)) % (count + 1) < count, np.arange(len(on)) % (count + 1) > 0
+        off_a = np.linalg.norm(vertices[on[here]] - chain[here, None], axis=2)
+        off_b = np.linalg.norm(vertices[on[there]] - chain[there, None], axis=2)
+        steps = (_short_paths(graph, vertices, on[here], on[there])
+                 + off_a[:, :, None] + off_b[:, None, :]).min(axis=(1, 2))
+        same = (on[here] == on[there]).all(axis=1)
+        steps[same] = np.linalg.norm(chain[here][same] - chain[there][same], axis=1)
+        length[ids] = steps.reshape(len(ids), count).sum(axis=1)
+    return length
 
 
 def _edge_lengths(corners):
