@@ -19,11 +19,11 @@ from blender_tests.helpers.takes import (largest_false_weight, pose_errors, rend
 OTHER_IDENTITY = 7
 
 # Measured (mean correlation over the 17 driven shapes, their mean absolute error):
-# bundled head 0.321, 0.064; identity 7: 0.365, 0.062.
-MEASURED_WEIGHTS = {"moving": (0.28, 0.07), "other_identity": (0.32, 0.07)}
+# bundled head 0.320, 0.070; identity 7: 0.350, 0.067.
+MEASURED_WEIGHTS = {"moving": (0.28, 0.076), "other_identity": (0.31, 0.073)}
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll):
-# moving 2.21, 6.4, (0.87, 1.00, 0.99); turning 2.46, 7.0, (0.85, 0.99, 1.02);
-# identity 7: 2.29, 7.0, (0.86, 1.01, 0.98). (2D points alone, every point counted alike:
+# moving 2.20, 6.4, (0.87, 1.00, 0.99); turning 2.45, 7.0, (0.85, 0.99, 1.02);
+# identity 7: 2.26, 6.9, (0.86, 1.01, 0.98). (2D points alone, every point counted alike:
 # moving 2.93, 6.1, pitch 0.78; turning 3.45, 7.0, pitch 0.77.)
 MEASURED_POSE = {"moving": (2.7, 7.6), "turning": (2.9, 8.3), "other_identity": (2.8, 8.2)}
 SLOPE_RANGE = (0.8, 1.12)
@@ -72,14 +72,14 @@ def test_head_rotation_as_measured(take_name, request):
 
 
 @pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.32, most shapes below 0.7, "
-                                       "MAE 0.064 (bundled head, head moving up to 25 deg)")
+                                       "MAE 0.070 (bundled head, head moving up to 25 deg)")
 def test_weights_reach_the_target(moving):
     correlations, mae, text = _weight_figures(*moving)
     assert correlations.mean() >= 0.85 and correlations.min() >= 0.7 and mae <= 0.08, text
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
-                                       "weight 0.77 (jawForward); with the true points' "
+                                       "weight 0.91 (browDown_L); with the true points' "
                                        "projections 0.04: FaceMesh's points slide as the head turns")
 def test_a_turning_neutral_face_makes_no_expression(turning):
     value, name = largest_false_weight(*turning)

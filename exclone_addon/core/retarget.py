@@ -73,6 +73,10 @@ def locate_canonical_face(canonical, avatar, avatar_triangles=None, settings=Non
     return locate_points(points, avatar.vertices, avatar_triangles)
 
 
+# Below this fraction of the largest key's motion at the tracked points a key is not read.
+UNSEEN_MOTION = 0.01
+
+
 @dataclass
 class AvatarRig:
     """The avatar's side of retargeting: its shape keys sampled where the tracker's 468 points
@@ -97,6 +101,10 @@ class AvatarRig:
         size = np.linalg.norm(neutral.max(axis=0) - neutral.min(axis=0))
         if motion.max() <= 1e-6 * size:
             raise ExCloneError("none of the avatar's shape keys moves its face")
+        # A key that barely moves the tracked points (a pupil dilating, a point grazing the
+        # eyeball) cannot be read from them: solved, it would follow their noise to full
+        # weight. It is kept at zero as a key that moves none of them (WeightSolver's ridge).
+        sparse[motion < UNSEEN_MOTION * motion.max()] = 0.0
         return cls(list(names), neutral, sparse, locations)
 
     @classmethod
