@@ -43,14 +43,20 @@ def _fourth_corner(corners):
 def fourth_offsets(first_edges, second_edges, axis=-1):
     """v4 - v1 of Sumner's 4th vertex from triangles' edges v2 - v1 and v3 - v1 (xyz along
     `axis`): n / sqrt(|n|) with n = first x second; 0 where the triangle is degenerate."""
-    a, b = np.moveaxis(first_edges, axis, 0), np.moveaxis(second_edges, axis, 0)
+    # each coordinate contiguous: the products below run several times faster than on strides
+    a = np.ascontiguousarray(np.moveaxis(first_edges, axis, 0))
+    b = np.ascontiguousarray(np.moveaxis(second_edges, axis, 0))
     n = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    scratch = np.empty(n.shape[1:])
     for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):     # the cross product
         np.multiply(a[i], b[j], out=n[k])
-        n[k] -= a[j] * b[i]
-    root = np.sqrt(np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]))       # sqrt(|n|)
+        n[k] -= np.multiply(a[j], b[i], out=scratch)
+    root = np.multiply(n[0], n[0])                              # sqrt(|n|)
+    root += np.multiply(n[1], n[1], out=scratch)
+    root += np.multiply(n[2], n[2], out=scratch)
+    np.sqrt(np.sqrt(root, out=root), out=root)
     np.divide(n, root, out=n, where=root > 0)
-    n[:, root == 0] = 0.0
+    np.copyto(n, 0.0, where=root == 0)
     return np.moveaxis(n, 0, axis)
 
 

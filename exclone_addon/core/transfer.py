@@ -93,6 +93,8 @@ def _no_unique_solution():
 # time, so its memory does not grow with the number of expressions; more per block gains little
 # (the factor's back-substitution is as fast per column from about 8 columns on).
 EXPRESSIONS_PER_BLOCK = 8
+# Mapped triangles whose images' 4th vertices are made together (memory-bound elementwise work)
+TRIANGLES_PER_CHUNK = 8192
 
 
 class Transfer:
@@ -292,11 +294,17 @@ class CorrespondedTransfer:
     def _image_offsets(self, moves, b):
         """(m, 3B) the 4th-vertex offsets of the mapped triangles' deformed images."""
         first, second = (edge @ moves for edge in self.image_edges)            # (m, 3B)
-        for edges, rest in ((first, self.rest_image_edges[0]), (second, self.rest_image_edges[1])):
-            edges.reshape(-1, 3, b)[...] += rest[:, :, None]
-        offsets = deformation.fourth_offsets(first.reshape(-1, 3, b), second.reshape(-1, 3, b),
-                                             axis=1)
-        return offsets.reshape(len(first), 3 * b)
+        offsets = np.empty_like(first)
+        # a few thousand triangles at a time: the cross product's temporaries stay in cache
+        for rows in blocks(len(first), TRIANGLES_PER_CHUNK):
+            images = []
+            for edges, rest in ((first, self.rest_image_edges[0]),
+                                (second, self.rest_image_edges[1])):
+                edges = edges[rows].reshape(-1, 3, b)
+                edges += rest[rows, :, None]
+                images.append(edges)
+            offsets[rows].reshape(-1, 3, b)[...] = deformation.fourth_offsets(*images, axis=1)
+        return offsets
 
 
 def _barycentric_sampling(vertex_map, source_triangles, ids, n_target, n_source):
