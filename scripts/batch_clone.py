@@ -236,12 +236,10 @@ def read_landmarks(path, n_source, n_target):
 
 
 def in_source_head(source, landmarks):
-    """The landmark pairs with their source ids (the source object's own numbering) in its
-    head region's, when the source was cut to one (a full body); ExCloneError if one lies
+    """The landmark pairs with their source ids (the source object's own numbering) in the
+    source's (its head region's when it was cut to one, a full body); ExCloneError if one lies
     outside it."""
-    if source.head is None:
-        return landmarks
-    inside = source.head.head_ids(landmarks["source"])
+    inside = source.ids_from_own(landmarks["source"])
     if inside is None:
         raise ExCloneError(f"--landmarks: some source landmarks lie outside the head region of "
                            f"{source.description} where its face was found; place them on the "
@@ -358,9 +356,8 @@ def read_inputs(args, paths, timings):
                                            else data.DEMO_HEAD_FILE]
     landmarks = None
     if args.landmarks:
-        whole = source.head.total if source.head is not None else len(source.mesh.vertices)
-        landmarks = in_source_head(source, read_landmarks(Path(args.landmarks), whole,
-                                                          len(target.mesh.vertices)))
+        landmarks = in_source_head(source, read_landmarks(
+            Path(args.landmarks), source.own_vertex_count, len(target.mesh.vertices)))
         inputs.append(Path(args.landmarks))
     outputs = paths.files()
     if paths.export_dir is not None:
@@ -477,8 +474,7 @@ def run(args):
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings)
         result.target_landmarks = face.head.own_ids(result.target_landmarks)
-        if inputs.source.head is not None:          # the source object's own numbering
-            result.source_landmarks = inputs.source.head.own_ids(result.source_landmarks)
+        result.source_landmarks = inputs.source.own_ids(result.source_landmarks)
         timings["total"] = time.perf_counter() - started
         report = build_report(args, paths, inputs, result, written, timings)
         report["measures"] = {"summary": summary(measures), "expressions": measures}

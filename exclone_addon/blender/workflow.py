@@ -192,9 +192,7 @@ def landmark_pairs(source, source_obj, target_obj, target_mesh, target_face):
 def _in_source_head(source, ids):
     """{name: id} of the source object's stored landmarks in the numbering of `source` (its head
     region when it was cut to one). ExCloneError if one lies outside that region."""
-    if source.head is None:
-        return ids
-    inside = source.head.head_ids(list(ids.values()))
+    inside = source.ids_from_own(list(ids.values()))
     if inside is None:
         raise ExCloneError(f"The landmarks stored on the source {source.description} lie outside "
                            "its face's head region: run Auto Landmarks again")

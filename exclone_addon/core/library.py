@@ -52,6 +52,20 @@ class ExpressionLibrary:
     # core.character.HeadCut (its ids: the mesh object's own numbering), or None: used whole
     head: object = None
 
+    @property
+    def own_vertex_count(self):
+        """Vertices of the mesh object the library was read from (a cut body's whole count)."""
+        return len(self.mesh.vertices) if self.head is None else self.head.total
+
+    def ids_from_own(self, ids):
+        """The mesh object's own vertex ids `ids` in the library's numbering (its head region's
+        when it was cut to one), or None if any lies outside that region."""
+        return np.asarray(ids, dtype=np.int64) if self.head is None else self.head.head_ids(ids)
+
+    def own_ids(self, ids):
+        """The library's vertex ids `ids` in the numbering of the mesh object it was read from."""
+        return np.asarray(ids, dtype=np.int64) if self.head is None else self.head.own_ids(ids)
+
     def subset(self, names):
         """The library restricted to `names`, in that order."""
         index = {name: i for i, name in enumerate(self.names)}
