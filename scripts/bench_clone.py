@@ -14,10 +14,11 @@ into another. Cases:
 - face_dense_target: the face region onto the demo head subdivided once (midpoint subdivision,
   same shape, about 4x the vertices): a third size point, for memory against target size;
 - cli_obj_folder: the command line (scripts/batch_clone.py --no-preview) from process start to
-  .blend written (wall and the process's CPU seconds), on an 11-OBJ source folder (the face region's neutral and its first 10
-  expressions, written with core.mesh.write_obj) onto a 7,000-vertex target (the demo head with
-  its 2,756 front-most triangles split at their centroids: `densified`; a midpoint subdivision
-  would give 4x the vertices, Catmull-Clark needs Blender's modifier); and the same folder read
+  .blend written (wall and the process's CPU seconds), on an 11-OBJ source folder (the face
+  region's neutral and its first 10 expressions, written with core.mesh.write_obj) onto a
+  7,000-vertex target (the demo head with its 2,756 front-most triangles split at their
+  centroids: `densified`; a midpoint subdivision would give 4x the vertices, Catmull-Clark needs
+  Blender's modifier); and the same folder read
   by the line-by-line OBJ reader (mesh._obj_line_by_line, what read_obj was before the bulk
   reader; faces of every file) and by core.library.load_obj_folder, side by side;
 - character_body, character_head_dense: a shared MakeHuman character (../shared/data/characters:
@@ -768,23 +769,19 @@ def main(argv=None):
     args = parser.parse_args(argv)
 
     if args.case:
-        if args.case == "compare":
-            result = run_compare(with_trimesh=not args.no_trimesh)
-        elif args.case == "cli_obj_folder":
-            result = run_cli_case()
-        elif args.case in CHARACTER_FILES:
-            result = run_character_case(args.case)
-        elif args.case == "ict_identity":
-            result = run_identity_case()
-        elif _sized(args.case):
+        # every case by name (size_N aside): what each runs
+        cases = {**{name: run_case for name in CLONE_CASES},
+                 **{name: run_character_case for name in CHARACTER_FILES},
+                 "cli_obj_folder": lambda _: run_cli_case(),
+                 "ict_identity": lambda _: run_identity_case(),
+                 "compare": lambda _: run_compare(with_trimesh=not args.no_trimesh)}
+        if _sized(args.case):
             result = run_sized_case(args.case)
-        elif args.case in CLONE_CASES:
-            result = run_case(args.case)
+        elif args.case in cases:
+            result = cases[args.case](args.case)
         else:
             parser.exit(2, f"bench_clone: unknown case {args.case!r}; the cases: "
-                           + ", ".join([*CLONE_CASES, "cli_obj_folder", "ict_identity",
-                                        *CHARACTER_FILES, "compare", "size_N (N vertices)"])
-                        + "\n")
+                           + ", ".join([*cases, "size_N (N vertices)"]) + "\n")
         print(json.dumps(result))
         return 0
 
