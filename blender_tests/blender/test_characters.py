@@ -166,6 +166,45 @@ def test_auto_landmarks_on_a_body_are_on_its_head(shared_data):
     assert world[ids["nose_tip"]] @ up > world[:, 2].max() - 0.3 * np.ptp(world[:, 2])
 
 
+def _make_active(obj):
+    for one in bpy.context.selected_objects:
+        one.select_set(False)
+    obj.select_set(True)
+    bpy.context.view_layer.objects.active = obj
+
+
+def test_landmark_edits_reach_the_face_object_whatever_is_active(shared_data):
+    """Auto Landmarks stores a character's landmarks on its face's object. Snap, Mirror and
+    Clear act on them with the dragged marker, an eye or the character's parent active (they
+    were greyed out with "no landmarks: run Auto Landmarks")."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    objects = load_into_scene(shared_data / "characters" / "mh_male_body.blend")
+    body = objects["Body"]
+    _make_active(body)
+    assert bpy.ops.exclone.auto_landmarks() == {'FINISHED'}
+    corner = stored_landmarks.stored(body)["mouth_corner_left"]
+    local = mesh_io.mesh_from_object(body).vertices       # marker locations are the body's local
+    wanted = int(np.argsort(np.linalg.norm(local - local[corner], axis=1))[3])    # a near vertex
+    marker = stored_landmarks.markers(body)["mouth_corner_left"]
+    marker.location = local[wanted]
+
+    _make_active(marker)                   # as after dragging it
+    assert bpy.ops.exclone.snap_landmarks() == {'FINISHED'}
+    assert stored_landmarks.stored(body)["mouth_corner_left"] == wanted
+
+    _make_active(objects["Eye_L"])
+    assert bpy.ops.exclone.mirror_landmarks(from_side="left") == {'FINISHED'}
+    ids = stored_landmarks.stored(body)
+    world = character.world_mesh(body).vertices
+    mirror = world[ids["mouth_corner_left"]] * [-1.0, 1.0, 1.0]   # the body's plane is x = 0
+    spacing = np.linalg.norm(world[wanted] - world[corner])
+    assert np.linalg.norm(world[ids["mouth_corner_right"]] - mirror) <= 2 * spacing
+
+    _make_active(objects["mh_male_body"])  # the character's empty parent
+    assert bpy.ops.exclone.clear_landmarks() == {'FINISHED'}
+    assert stored_landmarks.IDS not in body and not stored_landmarks.markers(body)
+
+
 def test_edited_source_landmarks_pair_with_the_bodys_head(shared_data):
     """Landmarks edited on the source only: the body's side is found as Clone finds it (on its
     head region), so the pairs hold (the whole-body path found 1 landmark and failed)."""

@@ -343,19 +343,29 @@ class EXCLONE_OT_remove_preview(bpy.types.Operator):
         return {'FINISHED'}
 
 
+def _landmark_source(context, target):
+    """The source object whose landmarks the landmark operators find and edit, or None (the
+    built-in library, or no usable source chosen)."""
+    if context.scene.exclone.source_mode != 'OBJECT':
+        return None
+    try:
+        source = workflow.source_object(context, target)
+    except ExCloneError:
+        return None
+    return source if source.type == 'MESH' and source is not target else None
+
+
 def _landmark_objects(context):
-    """The mesh objects whose landmarks the landmark operators act on: source and target."""
+    """The mesh objects whose landmarks the landmark operators act on: the source object and the
+    target character's meshes that hold landmarks. Auto Landmarks stores a character's on its
+    face's object, so a dragged marker, an eye or the character's parent made active still edits
+    them (the target itself where nothing is stored yet)."""
     target = workflow.target_object(context)
-    objects = [target] if target is not None and target.type == 'MESH' else []
-    settings = context.scene.exclone
-    if settings.source_mode == 'OBJECT':
-        try:
-            source = workflow.source_object(context, target)
-        except ExCloneError:
-            source = None
-        if source is not None and source.type == 'MESH' and source not in objects:
-            objects.insert(0, source)
-    return objects
+    meshes = character.family(target) if target is not None else []
+    objects = [obj for obj in meshes if stored_landmarks.IDS in obj] \
+        or ([target] if target is not None and target.type == 'MESH' else [])
+    source = _landmark_source(context, target)
+    return ([source] if source is not None and source not in objects else []) + objects
 
 
 class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
@@ -373,7 +383,8 @@ class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
     def execute(self, context):
         started = time.perf_counter()
         target = workflow.target_object(context)
-        sources = [obj for obj in _landmark_objects(context) if obj is not target]
+        source = _landmark_source(context, target)
+        sources = [] if source is None else [source]
         found = {}   # every object's landmarks first: an error leaves all of them as they were
         for obj in sources:
             try:
