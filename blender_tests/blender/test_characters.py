@@ -205,6 +205,33 @@ def test_landmark_edits_reach_the_face_object_whatever_is_active(shared_data):
     assert stored_landmarks.IDS not in body and not stored_landmarks.markers(body)
 
 
+def test_the_face_is_found_off_the_main_thread_before_the_operator_plans(shared_data):
+    """From the UI the engine operators find the face in a worker (FaceSearch) before plan()
+    runs on the main thread: the search covers exactly the face plan() then uses (the same
+    object, remembered), for the library and for a character as the source object."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    objects = load_into_scene(shared_data / "characters" / "mh_male_body.blend")
+    before = set(bpy.data.objects)
+    load_into_scene(shared_data / "characters" / "mh_child_body_expr.blend")
+    source, = [obj for obj in bpy.data.objects if obj not in before and obj.name.startswith("Body")]
+    _select_the_character(objects, "Body")
+    source.select_set(True)
+    workflow.clear_cache()
+    context = bpy.context
+    for use_library in (True, False):
+        searches = workflow.face_searches(context, use_library)
+        assert len(searches) == (1 if use_library else 2)
+        assert workflow.FaceSearch(searches).start().wait(timeout=300)
+        found = [workflow.character_face(parts) for parts in searches]
+        library_or_body, source_obj = workflow.resolve_source(
+            context, workflow.target_object(context), use_library)
+        target = workflow.resolve_target(context, library_or_body, source_obj)
+        assert target.face is found[-1]
+        assert objects[FACE_OBJECT["mh_male_body.blend"]] is target.face_object
+        if not use_library:
+            assert source_obj is source
+
+
 def test_edited_source_landmarks_pair_with_the_bodys_head(shared_data):
     """Landmarks edited on the source only: the body's side is found as Clone finds it (on its
     head region), so the pairs hold (the whole-body path found 1 landmark and failed)."""

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import bpy
 from bpy.props import BoolProperty, EnumProperty, StringProperty
 
-from ..core.errors import ExCloneError
+from ..core.errors import Cancelled, ExCloneError
 from ..core.library import ARKIT_BLENDSHAPES, arkit_blendshapes
 from ..core.mesh import PolyMesh
 from ..core.reports import fit_error, measures_clause, summary
@@ -98,9 +98,28 @@ class _Engine:
         finally:
             window_manager.progress_end()
 
+    def face_searches(self, context):
+        """The parts lists whose face plan() will find (workflow.face_searches)."""
+        return workflow.face_searches(context, self.use_library)
+
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
+        # the faces are found in a worker first (plan() then finds them remembered), so the UI
+        # does not freeze for the face finding's renders before the engine's worker starts
+        try:
+            self._search, self._job = workflow.FaceSearch(self.face_searches(context)).start(), None
+        except Exception as exc:
+            return failed(self, exc)
+        window_manager = context.window_manager
+        self._timer = window_manager.event_timer_add(0.1, window=context.window)
+        window_manager.progress_begin(0.0, 1.0)
+        window_manager.modal_handler_add(self)
+        context.workspace.status_text_set("ExClone: finding the face...")
+        return {'RUNNING_MODAL'}
+
+    def _start_engine(self, context):
+        """plan() once the face search is done, and the engine's worker; a set if it ends here."""
         try:
             plan = self.plan(context)
             if isinstance(plan, set):
@@ -109,13 +128,25 @@ class _Engine:
         except Exception as exc:
             return failed(self, exc)
         self._job = workflow.EngineJob(*plan.inputs).start()
-        window_manager = context.window_manager
-        self._timer = window_manager.event_timer_add(0.1, window=context.window)
-        window_manager.progress_begin(0.0, 1.0)
-        window_manager.modal_handler_add(self)
-        return {'RUNNING_MODAL'}
+        return None
+
+    def _end_modal(self, context):
+        context.window_manager.event_timer_remove(self._timer)
+        context.window_manager.progress_end()
+        context.workspace.status_text_set(None)
 
     def modal(self, context, event):
+        if self._job is None:               # still finding the face
+            if event.type == 'ESC':         # the search ends by itself; its face is remembered
+                self._end_modal(context)
+                return failed(self, Cancelled())
+            if event.type != 'TIMER' or not self._search.done:
+                return {'PASS_THROUGH'}
+            ended = self._start_engine(context)
+            if ended is not None:
+                self._end_modal(context)
+                return ended
+            return {'PASS_THROUGH'}
         job = self._job
         if event.type == 'ESC':
             job.cancel()
@@ -129,9 +160,7 @@ class _Engine:
                 context.workspace.status_text_set(
                     f"ExClone: {job.message} {100 * job.fraction:.0f}% (Esc cancels)")
             return {'PASS_THROUGH'}
-        context.window_manager.event_timer_remove(self._timer)
-        context.window_manager.progress_end()
-        context.workspace.status_text_set(None)
+        self._end_modal(context)
         return self._finish_job(job)
 
     def _finish_job(self, job):
@@ -247,6 +276,9 @@ class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         return _poll_target(cls, context)
+
+    def face_searches(self, context):
+        return workflow.face_searches(context, use_library=True)
 
     def plan(self, context):
         started = time.perf_counter()

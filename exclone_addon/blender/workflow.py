@@ -432,6 +432,56 @@ def measure(target_name, target_mesh, result, names, deltas, source=None):
     return found
 
 
+def face_searches(context, use_library):
+    """The parts lists whose face the engine operators' resolve_source and resolve_target will
+    look for: the source object's (unless it is the built-in library, or its landmarks were
+    edited) and the target character's, read now (main thread) for a FaceSearch. What cannot be
+    resolved is left out: the operator itself reports it."""
+    target = target_object(context)
+    searches, source_obj = [], None
+    try:
+        if not (use_library or settings_of(context).source_mode == 'LIBRARY'):
+            source_obj = source_object(context, target)
+            if source_obj.type == 'MESH' and not stored_landmarks.is_edited(source_obj):
+                searches.append(character.parts([source_obj]))
+        context.view_layer.update()       # as resolve_target: objects moved by a script
+        searches.append(character.parts(character.character_objects(
+            target, context.selected_objects, exclude=[source_obj])))
+    except ExCloneError:
+        pass
+    return searches
+
+
+class FaceSearch:
+    """character_face of parts lists (face_searches) in a worker thread: the face finding's
+    renders and models take 1-3 s on a character the first time, which froze Blender before the
+    engine's own worker started. The faces wait in character_face's memory for the operator's
+    own call on the main thread; a search that fails is left for that call to report."""
+
+    def __init__(self, searches):
+        self._thread = threading.Thread(target=self._work, args=(searches,), daemon=True)
+
+    @staticmethod
+    def _work(searches):
+        for parts in searches:
+            try:
+                character_face(parts)
+            except Exception:       # reported by the operator's own call
+                pass
+
+    def start(self):
+        self._thread.start()
+        return self
+
+    @property
+    def done(self):
+        return not self._thread.is_alive()
+
+    def wait(self, timeout=None):
+        self._thread.join(timeout)
+        return self.done
+
+
 class EngineJob:
     """run_engine in a worker thread, so that the UI stays responsive and Esc can stop it.
 
