@@ -64,12 +64,55 @@ class Plan:
     finish: object                # callable(workflow.Run) -> the operator's return set
 
 
-class _Engine:
+class _FindsTheFaceFirst:
+    """From the UI (invoke with a window) the faces the operator will look for
+    (self.face_searches) are found in a worker first (workflow.FaceSearch, remembered by
+    character_face), so Blender does not freeze for the face finding's renders (1-3 s on a
+    character the first time); then self.after_search(context) runs on the main thread: a set
+    ends the operator, None hands the modal events to self.modal_work. Elsewhere (scripts,
+    background Blender) execute() runs at once. Esc cancels the search."""
+
+    def invoke(self, context, event):
+        if bpy.app.background or context.window is None:
+            return self.execute(context)
+        try:
+            self._search = workflow.FaceSearch(self.face_searches(context)).start()
+        except Exception as exc:
+            return failed(self, exc)
+        window_manager = context.window_manager
+        self._timer = window_manager.event_timer_add(0.1, window=context.window)
+        window_manager.progress_begin(0.0, 1.0)
+        window_manager.modal_handler_add(self)
+        context.workspace.status_text_set("ExClone: finding the face... (Esc cancels)")
+        return {'RUNNING_MODAL'}
+
+    def _end_modal(self, context):
+        context.window_manager.event_timer_remove(self._timer)
+        context.window_manager.progress_end()
+        context.workspace.status_text_set(None)
+
+    def modal(self, context, event):
+        if self._search is None:
+            return self.modal_work(context, event)
+        if event.type == 'ESC':             # the search ends by itself; its faces are remembered
+            self._end_modal(context)
+            return failed(self, Cancelled())
+        if event.type != 'TIMER' or not self._search.done:
+            return {'PASS_THROUGH'}
+        self._search = None
+        ended = self.after_search(context)
+        if ended is not None:
+            self._end_modal(context)
+            return ended
+        return {'PASS_THROUGH'}
+
+
+class _Engine(_FindsTheFaceFirst):
     """The engine operators: self.plan(context) checks the input and reads the meshes (and may
     return a set to stop early), the engine runs, plan.finish writes the result.
 
-    From the UI (invoke with a window) the engine runs in a worker thread while a modal handler
-    shows the progress and Esc cancels; elsewhere (scripts, background Blender) execute() runs it
+    From the UI the faces are found first (_FindsTheFaceFirst), then the engine runs in a worker
+    thread while a modal handler shows the progress and Esc cancels; elsewhere execute() runs it
     with progress_update only. Either way an error or a cancel is reported as one line and
     changes nothing."""
     bl_options = {'REGISTER', 'UNDO'}
@@ -102,24 +145,8 @@ class _Engine:
         """The parts lists whose face plan() will find (workflow.face_searches)."""
         return workflow.face_searches(context, self.use_library)
 
-    def invoke(self, context, event):
-        if bpy.app.background or context.window is None:
-            return self.execute(context)
-        # the faces are found in a worker first (plan() then finds them remembered), so the UI
-        # does not freeze for the face finding's renders before the engine's worker starts
-        try:
-            self._search, self._job = workflow.FaceSearch(self.face_searches(context)).start(), None
-        except Exception as exc:
-            return failed(self, exc)
-        window_manager = context.window_manager
-        self._timer = window_manager.event_timer_add(0.1, window=context.window)
-        window_manager.progress_begin(0.0, 1.0)
-        window_manager.modal_handler_add(self)
-        context.workspace.status_text_set("ExClone: finding the face...")
-        return {'RUNNING_MODAL'}
-
-    def _start_engine(self, context):
-        """plan() once the face search is done, and the engine's worker; a set if it ends here."""
+    def after_search(self, context):
+        """plan() (the faces now remembered) and the engine's worker; a set if it ends here."""
         try:
             plan = self.plan(context)
             if isinstance(plan, set):
@@ -130,23 +157,7 @@ class _Engine:
         self._job = workflow.EngineJob(*plan.inputs).start()
         return None
 
-    def _end_modal(self, context):
-        context.window_manager.event_timer_remove(self._timer)
-        context.window_manager.progress_end()
-        context.workspace.status_text_set(None)
-
-    def modal(self, context, event):
-        if self._job is None:               # still finding the face
-            if event.type == 'ESC':         # the search ends by itself; its face is remembered
-                self._end_modal(context)
-                return failed(self, Cancelled())
-            if event.type != 'TIMER' or not self._search.done:
-                return {'PASS_THROUGH'}
-            ended = self._start_engine(context)
-            if ended is not None:
-                self._end_modal(context)
-                return ended
-            return {'PASS_THROUGH'}
+    def modal_work(self, context, event):
         job = self._job
         if event.type == 'ESC':
             job.cancel()
@@ -400,7 +411,7 @@ def _landmark_objects(context):
     return ([source] if source is not None and source not in objects else []) + objects
 
 
-class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
+class EXCLONE_OT_auto_landmarks(_FindsTheFaceFirst, bpy.types.Operator):
     """Find the landmarks on the source and the target automatically and show them as named
     markers you can drag (then Snap Landmarks)"""
     bl_idname = "exclone.auto_landmarks"
@@ -410,6 +421,12 @@ class EXCLONE_OT_auto_landmarks(bpy.types.Operator):
     @classmethod
     def poll(cls, context):
         return _poll_target(cls, context)
+
+    def face_searches(self, context):
+        return workflow.face_searches(context, use_library=False, every_source=True)
+
+    def after_search(self, context):
+        return self.execute(context)
 
     @reporting
     def execute(self, context):

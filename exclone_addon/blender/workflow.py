@@ -432,19 +432,24 @@ def measure(target_name, target_mesh, result, names, deltas, source=None):
     return found
 
 
-def face_searches(context, use_library):
-    """The parts lists whose face the engine operators' resolve_source and resolve_target will
-    look for: the source object's (unless it is the built-in library, or its landmarks were
-    edited) and the target character's, read now (main thread) for a FaceSearch. What cannot be
-    resolved is left out: the operator itself reports it."""
+def face_searches(context, use_library, every_source=False):
+    """The parts lists whose face the operators' resolve_source and resolve_target will look
+    for: the source object's (unless it is the built-in library, or its landmarks were edited
+    and every_source is False: object_source then uses it whole) and the target character's,
+    read now (main thread) for a FaceSearch. What cannot be resolved is left out: the operator
+    itself reports it."""
     target = target_object(context)
     searches, source_obj = [], None
-    try:
-        if not (use_library or settings_of(context).source_mode == 'LIBRARY'):
+    if not (use_library or settings_of(context).source_mode == 'LIBRARY'):
+        try:
             source_obj = source_object(context, target)
-            if source_obj.type == 'MESH' and not stored_landmarks.is_edited(source_obj):
+            if source_obj.type == 'MESH' and (every_source
+                                              or not stored_landmarks.is_edited(source_obj)):
                 searches.append(character.parts([source_obj]))
-        context.view_layer.update()       # as resolve_target: objects moved by a script
+        except ExCloneError:
+            pass
+    context.view_layer.update()       # as resolve_target: objects moved by a script
+    try:
         searches.append(character.parts(character.character_objects(
             target, context.selected_objects, exclude=[source_obj])))
     except ExCloneError:
