@@ -457,22 +457,11 @@ def face_searches(context, use_library, every_source=False):
     return searches
 
 
-class FaceSearch:
-    """character_face of parts lists (face_searches) in a worker thread: the face finding's
-    renders and models take 1-3 s on a character the first time, which froze Blender before the
-    engine's own worker started. The faces wait in character_face's memory for the operator's
-    own call on the main thread; a search that fails is left for that call to report."""
+class _Worker:
+    """self._work(*args) in a daemon thread: start(), done, wait()."""
 
-    def __init__(self, searches):
-        self._thread = threading.Thread(target=self._work, args=(searches,), daemon=True)
-
-    @staticmethod
-    def _work(searches):
-        for parts in searches:
-            try:
-                character_face(parts)
-            except Exception:       # reported by the operator's own call
-                pass
+    def __init__(self, *args):
+        self._thread = threading.Thread(target=self._work, args=args, daemon=True)
 
     def start(self):
         self._thread.start()
@@ -487,7 +476,22 @@ class FaceSearch:
         return self.done
 
 
-class EngineJob:
+class FaceSearch(_Worker):
+    """character_face of parts lists (face_searches) in a worker thread: the face finding's
+    renders and models take 1-3 s on a character the first time, which froze Blender before the
+    engine's own worker started. The faces wait in character_face's memory for the operator's
+    own call on the main thread; a search that fails is left for that call to report."""
+
+    @staticmethod
+    def _work(searches):
+        for parts in searches:
+            try:
+                character_face(parts)
+            except Exception:       # reported by the operator's own call
+                pass
+
+
+class EngineJob(_Worker):
     """run_engine in a worker thread, so that the UI stays responsive and Esc can stop it.
 
     The worker touches no Blender data (the meshes are read before, the result is written after,
@@ -499,7 +503,7 @@ class EngineJob:
         self.fraction, self.message = 0.0, "starting"
         self.run = self.error = None
         self._cancel = threading.Event()
-        self._thread = threading.Thread(target=self._work, args=inputs, daemon=True)
+        super().__init__(*inputs)
 
     def _progress(self, fraction, message):
         if self._cancel.is_set():
@@ -512,24 +516,12 @@ class EngineJob:
         except Exception as exc:  # any, Cancelled too: the operator reports it in the main thread
             self.error = exc
 
-    def start(self):
-        self._thread.start()
-        return self
-
     def cancel(self):
         self._cancel.set()
 
     @property
     def cancelled(self):
         return self._cancel.is_set()
-
-    @property
-    def done(self):
-        return not self._thread.is_alive()
-
-    def wait(self, timeout=None):
-        self._thread.join(timeout)
-        return self.done
 
 
 def mesh_digest(obj):
