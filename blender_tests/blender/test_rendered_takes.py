@@ -18,15 +18,17 @@ from blender_tests.helpers.takes import (largest_false_weight, pose_errors, rend
 # An ICT identity (the identity model's weights for this seed), not the bundled face.
 OTHER_IDENTITY = 7
 
-# Measured (mean correlation over the 17 driven shapes, their mean absolute error):
-# bundled head 0.320, 0.070; identity 7: 0.350, 0.067.
-MEASURED_WEIGHTS = {"moving": (0.28, 0.076), "other_identity": (0.31, 0.073)}
+# Measured with the tracker model learnt from FaceMesh's points on other ICT identities
+# (scripts/make_tracker_model.py; mean correlation over the 17 driven shapes, their mean absolute
+# error): bundled head 0.325, 0.056; identity 7: 0.365, 0.059. (With the model of the located
+# points it replaced: 0.320, 0.070; 0.350, 0.067.)
+MEASURED_WEIGHTS = {"moving": (0.29, 0.062), "other_identity": (0.33, 0.065)}
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll):
-# moving 2.20, 6.4, (0.87, 1.00, 0.99); turning 2.45, 7.0, (0.85, 0.99, 1.02);
-# identity 7: 2.26, 6.9, (0.86, 1.01, 0.98). (2D points alone, every point counted alike:
-# moving 2.93, 6.1, pitch 0.78; turning 3.45, 7.0, pitch 0.77.)
-MEASURED_POSE = {"moving": (2.7, 7.6), "turning": (2.9, 8.3), "other_identity": (2.8, 8.2)}
-SLOPE_RANGE = (0.8, 1.12)
+# moving 1.57, 3.24, (1.00, 1.02, 1.01); turning 1.45, 2.90, (0.99, 1.01, 1.03);
+# identity 7: 1.53, 4.34, (1.05, 1.02, 1.02). (The located points' model with FaceMesh's depth:
+# moving 2.20, 6.4, pitch 0.87; turning 2.45, 7.0, pitch 0.85; identity 7: 2.26, 6.9, 0.86.)
+MEASURED_POSE = {"moving": (1.9, 3.9), "turning": (1.8, 3.5), "other_identity": (1.9, 5.0)}
+SLOPE_RANGE = (0.93, 1.09)
 
 
 @pytest.fixture(scope="module")
@@ -71,24 +73,27 @@ def test_head_rotation_as_measured(take_name, request):
     assert np.all((slopes >= low) & (slopes <= high)), slopes
 
 
-@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.32, most shapes below 0.7, "
-                                       "MAE 0.070 (bundled head, head moving up to 25 deg)")
+@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.325, most shapes below 0.7 "
+                                       "(brows and nose 0.0-0.4, jaw and mouth 0.5-0.9), MAE "
+                                       "0.056 (bundled head, head moving up to 25 deg)")
 def test_weights_reach_the_target(moving):
     correlations, mae, text = _weight_figures(*moving)
     assert correlations.mean() >= 0.85 and correlations.min() >= 0.7 and mae <= 0.08, text
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
-                                       "weight 0.91 (browDown_L); with the true points' "
-                                       "projections 0.04: FaceMesh's points slide as the head turns")
+                                       "weight 0.81 (browDown_L); with the true points' "
+                                       "projections 0.04: FaceMesh's points slide as the head "
+                                       "turns, and the learnt slide leaves 1.4 px median (a slide "
+                                       "fitted to this head's own frames: 0.7)")
 def test_a_turning_neutral_face_makes_no_expression(turning):
     value, name = largest_false_weight(*turning)
     assert value <= 0.15, f"{name} reached {value:.2f}"
 
 
-@pytest.mark.xfail(strict=True, reason="measured: median 2.2 deg, max 6.4 deg, pitch read at 0.87 "
-                                       "(the true points' projections instead of FaceMesh's "
-                                       "on the turning take: 0.8, 1.9, every axis 1.00)")
+@pytest.mark.xfail(strict=True, reason="measured: median 1.57 deg, max 3.24 deg, every axis "
+                                       "within 0.02 of its scale (the true points' projections "
+                                       "instead of FaceMesh's on the turning take: 0.8, 1.9)")
 def test_head_rotation_reaches_the_target(moving):
     errors, slopes = pose_errors(*moving)
     assert np.median(errors) <= 1.5 and errors.max() <= 3.0

@@ -206,8 +206,11 @@ def test_head_rotation_in_blender_axes():
     session = FaceTrackingSession(camera=camera, calibration_frames=3)
 
     def frame(camera_rotation):
-        pose = camera_rotation * FRONTAL
-        return camera.project(pose.apply(model.mean) + [0.0, 0.0, 50.0])
+        # the points as the model says the detector reports them at that pose (with their slide)
+        pose, translation = camera_rotation * FRONTAL, np.array([0.0, 0.0, 50.0])
+        slide = model.pose_offset(pose, translation)
+        points = model.mean if slide is None else model.mean + slide
+        return camera.project(pose.apply(points) + translation)
 
     for k in range(3):
         session.step_landmarks(frame(Rotation.identity()), k / FPS)

@@ -121,7 +121,9 @@ class FaceTrackingSession:
         self.detector = face_models.FaceDetector(models_dir)
         self.landmarker = face_models.FaceLandmarker(models_dir)
         self.iris = face_models.IrisLandmarker(models_dir)
-        self.model = (tracker_model or load_tracker_model()).shape_model
+        tracker_model = tracker_model or load_tracker_model()
+        self.model = tracker_model.shape_model
+        self._depth_weight = tracker_model.depth_weight
         self._fitter = None           # the canonical model's fitter until calibrated
         self.neutral = None           # (468, 3) the actor's calibrated neutral (model space)
         self.neutral_rotation = None  # mean head pose over the calibration frames
@@ -184,7 +186,8 @@ class FaceTrackingSession:
                                "must all be one size")
         if self._fitter is None:
             model = self.model if self.neutral is None else self.model.with_mean(self.neutral)
-            self._fitter = ShapeFitter(model, self.camera, tolerance_px=FIT_TOLERANCE_PX)
+            self._fitter = ShapeFitter(model, self.camera, tolerance_px=FIT_TOLERANCE_PX,
+                                       depth_weight=self._depth_weight)
 
     def _use_camera(self, camera):
         if camera != self.camera:
@@ -364,7 +367,8 @@ class FaceTrackingSession:
 
     def _finish_calibration(self):
         frames = np.array(self._calibration_points)
-        generic = ShapeFitter(self.model, self.camera, tolerance_px=FIT_TOLERANCE_PX)
+        generic = ShapeFitter(self.model, self.camera, tolerance_px=FIT_TOLERANCE_PX,
+                              depth_weight=self._depth_weight)
         neutral, fitter, fits = calibrate_neutral(generic, frames)
         self.neutral = neutral
         self._fitter = fitter

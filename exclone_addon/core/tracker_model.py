@@ -1,13 +1,17 @@
 """The tracker's 3D shape model: the file that ships it (build and read) and the model built from it.
 
-The model is MediaPipe's canonical face (468 points, FaceMesh's order) with the bundled ICT
-library's expressions sampled where those points lie on ICT's skin (docs/method.md §11). Finding
-them there is a registration (about 5 s); its result, a surface location per point, ships in
-data/tracker_model.npz (written by scripts/make_tracker_model.py), so loading the model costs
-reading the library and a small PCA (about 0.4 s, once per process).
+The model's points are FaceMesh's 468 (its order). Where they lie on the bundled ICT face's skin
+is a registration of MediaPipe's canonical face (about 5 s); the located points carry the ICT
+library's expressions (docs/method.md §11) and are where retargeting samples an avatar made on
+ICT's topology. FaceMesh does not report those points, though: its points sit a little apart
+and slide over the face as the head turns. So the shipped model is learnt from what FaceMesh
+reports on ICT heads rendered with known expressions and head turns (learn_tracker_model): its
+neutral and each point's slide with the turn; the modes are the located points' expression
+motion. data/tracker_model.npz ships both the locations and the learnt arrays (written by
+scripts/make_tracker_model.py, which renders in background Blender); loading it is a small PCA.
 """
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +20,10 @@ from . import data
 from .errors import ExCloneError
 from .library import load_library
 from .retarget import SurfaceLocations, locate_canonical_face
-from .tracking import ShapeModel, expression_shape_model
+from .registration import similarity_transform
+from .tracking import POSE_FEATURES, ShapeModel, expression_shape_model, tukey_weights
 
-TRACKER_MODEL_VERSION = 1
+TRACKER_MODEL_VERSION = 2
 REMEDY = "run scripts/make_tracker_model.py"
 
 
@@ -35,10 +40,125 @@ def locate_tracker_landmarks(library=None, progress=None):
     return locations
 
 
-def write_tracker_model(locations, path=data.TRACKER_MODEL_FILE):
+@dataclass
+class TrainingFrames:
+    """One rendered head's frames: FaceMesh's points and the known truth."""
+    points: np.ndarray          # (T, 468, 3) FaceMesh's points (pixels; NaN: no face found)
+    weights: np.ndarray         # (T, E) the library's expression weights
+    rotations: object           # scipy Rotation (T,): the head (library axes) -> camera
+    translations: np.ndarray    # (T, 3) where the library's origin is in camera space
+    neutral: np.ndarray         # (468, 3) the located points on this head's neutral
+
+
+LEARNED_ARRAYS = ("mean", "deltas", "pose_offsets", "pose_centre")
+# How far the learnt model may stray from the located points where the frames say little, as
+# pixel^2 per cm^2 of difference (a pixel is about 0.08 cm on the training renders): the neutral's
+# offsets, the expressions' point motion (from the located motion) and the turn's slide.
+OFFSET_PRIOR = 1.0
+# A point's depth offset and its slide linear in the turn move its image alike (to first order):
+# the depth offset is held near the located surface, so that the turn's effect is the slide's.
+OFFSET_DEPTH_PRIOR = 1000.0
+MOTION_PRIOR = 20.0
+SLIDE_PRIOR = 5.0
+
+
+def learn_tracker_model(locations, frames, library, camera, rounds=2):
+    """The tracker's model learnt from what FaceMesh reports on rendered heads (docs/method.md
+    §11): each point p of a frame, in the library's axes, is the located point on that head's
+    neutral L plus the head's own offset o_h (what calibration finds for an actor), the
+    expressions' motion sum_e w_e D_e and a slide with the head's turn sum_f phi_f(v) A_f
+    (ShapeModel.pose_features of the direction v to the camera). Every observed pixel is a
+    linear equation in (o, D, A) (the point lies on the pixel's ray, divided by its depth:
+    residuals in pixels), solved per point by least squares with the priors above; a second
+    round weighs each observation by its residual (Tukey: a frame FaceMesh misread counts for
+    nothing). Returns a dict of arrays in the canonical face's axes and units
+    (write_tracker_model): the mean (the heads' mean neutral with their mean offset), the
+    expressions' located motion (FaceMesh's own D is solved for so that it does not leak into
+    the rest, and not kept: TrackerModel.from_learned), the slide A and the centre it is
+    measured from.
+    """
+    located_deltas = locations.sample(library.deltas)                  # (E, n, 3)
+    canonical = data.canonical_face().vertices
+    mean_neutral = np.mean([f.neutral for f in frames], axis=0)
+    rot, scale, shift = similarity_transform(mean_neutral, canonical)
+    centre = mean_neutral.mean(axis=0)
+    n, heads, count = len(mean_neutral), len(frames), len(library.deltas)
+    size = heads + count + len(POSE_FEATURES)
+    prior = np.repeat(np.concatenate([np.full(heads, OFFSET_PRIOR), np.full(count, MOTION_PRIOR),
+                                      np.full(len(POSE_FEATURES), SLIDE_PRIOR)]), 3)
+    prior[2:3 * heads:3] = OFFSET_DEPTH_PRIOR
+    target = np.zeros((n, size, 3))
+    target[:, heads:heads + count] = located_deltas.transpose(1, 0, 2)
+    systems = [_LinearRays(part, h, heads, camera, centre, rot) for h, part in enumerate(frames)]
+    solved = target
+    for round_ in range(rounds):
+        gram = np.diag(prior)[None] + sum(system.gram(solved, robust=round_ > 0) for system in systems)
+        rhs = prior * target.reshape(n, -1) + sum(system.rhs() for system in systems)
+        solved = np.linalg.solve(gram, rhs[..., None])[..., 0].reshape(n, size, 3)
+    offsets = solved[:, :heads].mean(axis=1)
+    slide = solved[:, heads + count:].transpose(1, 0, 2)
+    to_model = scale * rot.T      # row vectors: x @ (s R)^T
+    return dict(mean=(mean_neutral + offsets) @ to_model + shift, deltas=located_deltas @ to_model,
+                pose_offsets=slide @ to_model, pose_centre=centre @ to_model + shift)
+
+
+class _LinearRays:
+    """One head's frames as linear equations in the unknowns of learn_tracker_model: per frame
+    and point, two rows (n, 2, 3) acting on p - L and their right-hand sides, in pixels."""
+
+    def __init__(self, part, head, heads, camera, centre, rot):
+        seen = np.all(np.isfinite(part.points[..., :2]), axis=(1, 2))
+        points = part.points[seen, :, :2]
+        matrices = part.rotations[np.flatnonzero(seen)].as_matrix()       # (T, 3, 3)
+        translations = part.translations[seen]
+        # the direction to the camera from the head's centre, in the model's axes
+        to_camera = -np.einsum("tji,tj->ti", matrices, translations) - centre
+        features = ShapeModel.pose_features(to_camera @ rot.T)             # (T, F)
+        which = np.zeros((len(points), heads))
+        which[:, head] = 1.0
+        self.unknowns = np.column_stack((which, part.weights[seen], features))   # (T, U)
+        located = np.einsum("tij,nj->tni", matrices, part.neutral) + translations[:, None]
+        depth = located[..., 2]                                           # (T, n)
+        focal = np.array([camera.fx, camera.fy])
+        offset = points - np.array([camera.cx, camera.cy])                # (T, n, 2)
+        # the ray of pixel (u, v): f X_k - (u_k - c_k) X_z = 0 for X = R p + t, k = x, y
+        self.rows = (focal[None, None, :, None] * matrices[:, None, :2, :]
+                     - offset[..., None] * matrices[:, None, None, 2, :]) / depth[..., None, None]
+        values = (offset * translations[:, None, None, 2] - focal * translations[:, None, :2]) \
+            / depth[..., None]
+        self.values = values - np.einsum("tnkj,nj->tnk", self.rows, part.neutral)
+        self.weights = np.ones(depth.shape)                               # (T, n)
+
+    def gram(self, solved, robust):
+        """(n, 3U, 3U); with robust, the observations are first reweighed by their residuals
+        under `solved` (n, U, 3)."""
+        if robust:
+            residual = self.residuals(solved)
+            scale = 1.4826 * np.median(residual, axis=0)
+            self.weights = tukey_weights(residual, 4.685 * np.maximum(scale, 0.5))
+        count, size = self.unknowns.shape
+        pair = np.einsum("tu,tv->tuv", self.unknowns, self.unknowns).reshape(count, -1)
+        outer = np.einsum("tnki,tnkj,tn->tnij", self.rows, self.rows, self.weights).reshape(count, -1)
+        n = self.rows.shape[1]
+        return (pair.T @ outer).reshape(size, size, n, 3, 3).transpose(2, 0, 3, 1, 4).reshape(
+            n, 3 * size, 3 * size)
+
+    def residuals(self, solved):
+        """(T, n) each observation's distance in pixels from its ray under `solved` (n, U, 3)."""
+        predicted = np.einsum("tu,nui->tni", self.unknowns, solved)
+        return np.linalg.norm(np.einsum("tnkj,tnj->tnk", self.rows, predicted) - self.values, axis=2)
+
+    def rhs(self):
+        """(n, 3U) with the weights of the last gram()."""
+        return np.einsum("tu,tnki,tnk,tn->nui", self.unknowns, self.rows, self.values,
+                         self.weights).reshape(self.rows.shape[1], -1)
+
+
+def write_tracker_model(locations, learned, path=data.TRACKER_MODEL_FILE):
     np.savez_compressed(path, format_version=np.int64(TRACKER_MODEL_VERSION),
                         library=np.str_(data.LIBRARY_FILE.name),
-                        corners=locations.corners.astype(np.int32), bary=locations.bary)
+                        corners=locations.corners.astype(np.int32), bary=locations.bary,
+                        **{key: np.asarray(value, dtype=np.float32) for key, value in learned.items()})
 
 
 # -- run time ---------------------------------------------------------------------------------------
@@ -55,12 +175,33 @@ def read_tracker_locations(path=data.TRACKER_MODEL_FILE):
                                 stored["bary"].astype(np.float64))
 
 
+def read_learned_model(path=data.TRACKER_MODEL_FILE):
+    """The shipped model learnt from FaceMesh's points (learn_tracker_model's arrays)."""
+    read_tracker_locations(path)          # the file's presence and format
+    with np.load(path, allow_pickle=False) as stored:
+        return {key: stored[key].astype(np.float64) for key in LEARNED_ARRAYS}
+
+
 @dataclass(frozen=True)
 class TrackerModel:
     """The tracker's 3D shape model (canonical face + ICT expression modes) in the canonical
     face's units (cm) and axes."""
     shape_model: ShapeModel
     canonical: np.ndarray      # (468, 3) MediaPipe's canonical face
+    depth_weight: float = 0.1  # how much FaceMesh's depth counts in the fit (ShapeFitter)
+
+    @classmethod
+    def from_learned(cls, learned):
+        """The model learnt from FaceMesh's points (learn_tracker_model): its mean and the
+        points' slide with the head's turn; the modes are the expressions' located motion
+        (FaceMesh's own, learnt too, moves its points 0.2-0.7 times as far: modes of that read
+        the rendered takes worse, docs/method.md §11). FaceMesh's depth is not read with it: the
+        model says nothing of it."""
+        canonical = data.canonical_face()
+        model = ShapeModel.from_displacements(learned["mean"], learned["deltas"],
+                                              triangles=canonical.triangles())
+        return cls(replace(model, pose_offsets=learned["pose_offsets"],
+                           pose_centre=learned["pose_centre"]), canonical.vertices, depth_weight=0.0)
 
     @classmethod
     def from_locations(cls, locations, library=None):
@@ -75,4 +216,4 @@ class TrackerModel:
 @functools.lru_cache(maxsize=1)
 def load_tracker_model():
     """The bundled tracker model, built once per process from data/tracker_model.npz."""
-    return TrackerModel.from_locations(read_tracker_locations())
+    return TrackerModel.from_learned(read_learned_model())

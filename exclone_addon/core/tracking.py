@@ -8,9 +8,11 @@ dragging the fit. Neutral calibration adapts the model's mean to the actor's fac
 filter removes jitter; Kabsch removes head motion against the neutral.
 
 With three columns the points carry FaceMesh's depth (relative to the face, in pixels at the
-image's scale) as a further observation: measured on rendered takes, 2D points alone read the
-head's pitch at 0.77-0.78 of its size (FaceMesh's 2D points slide as the head turns; the true
-points' projections give 1.00), with the depth 0.85-0.87.
+image's scale) as a further observation: with a model of the located points, 2D points alone read
+the head's pitch at 0.77-0.78 of its size on rendered takes (FaceMesh's 2D points slide as the
+head turns; the true points' projections give 1.00), with the depth 0.85-0.87. A model that knows
+the slide (ShapeModel.pose_offsets, learnt from FaceMesh: core.tracker_model) reads it at
+0.99-1.05 from the 2D points alone.
 
 Scale is not a separate pose parameter: from one perspective view a bigger face further away
 looks the same, so the actor's size goes into the calibrated neutral and distance into depth.
@@ -33,6 +35,14 @@ from .mesh import outward_sign, vertex_normals
 # (on a rendered turning take their error varies with the pose by 2.7 px median facing away,
 # 1.6 px facing the camera).
 FACING_COSINE = 0.5
+
+# The features of the head's turn that a point's slide is linear in (ShapeModel.pose_features):
+# the monomials x^a y^b of the direction to the camera in the model's axes (frontal: +Z) up to
+# this degree (on the rendered takes, FaceMesh's points less the learnt model's, at the true pose:
+# 1.42 px median with degree 2, 1.37 with 3).
+POSE_DEGREE = 3
+POSE_FEATURES = tuple((a, total - a) for total in range(1, POSE_DEGREE + 1)
+                      for a in range(total, -1, -1))
 
 # Model (canonical face: +Y up, looking along +Z) seen frontally by the camera: turned half a
 # turn about x, so the model's up is the image's up and its face looks into the camera.
@@ -80,6 +90,10 @@ class ShapeModel:
     modes: np.ndarray         # (K, n, 3), orthonormal as (K, 3n) rows
     eigenvalues: np.ndarray   # (K,)
     triangles: np.ndarray = None   # (T, 3) the points' surface (for which way each faces), if known
+    # How each point slides with the head's turn: offsets (F, n, 3) linear in POSE_FEATURES of
+    # the direction from pose_centre (3,) to the camera; None: no slide.
+    pose_offsets: np.ndarray = None
+    pose_centre: np.ndarray = None
 
     @classmethod
     def from_displacements(cls, mean, displacements, energy=0.9999, max_modes=60,
@@ -112,6 +126,36 @@ class ShapeModel:
         first `modes` modes (all by default)."""
         k = len(self.eigenvalues) if modes is None else modes
         return replace(self, mean=mean, modes=self.modes[:k], eigenvalues=self.eigenvalues[:k])
+
+    @staticmethod
+    def pose_features(directions):
+        """(T, F) POSE_FEATURES of directions to the camera (T, 3) in the model's axes."""
+        v = np.asarray(directions, dtype=np.float64)
+        v = v / np.linalg.norm(v, axis=1, keepdims=True)
+        return np.column_stack([v[:, 0] ** a * v[:, 1] ** b for a, b in POSE_FEATURES])
+
+    def pose_offset(self, rotation, translation, jacobian=False):
+        """(n, 3) each point's slide at a pose (model -> camera), in model space; None without
+        a slide model. With jacobian: (slide, its derivative (n, 3, 6) by [omega, t], omega
+        turning on the left as in ShapeFitter)."""
+        if self.pose_offsets is None:
+            return None
+        inverse = rotation.inv()
+        to_camera = -inverse.apply(translation) - self.pose_centre
+        length = np.linalg.norm(to_camera)
+        v = to_camera / length
+        x, y = v[0], v[1]
+        slide = np.tensordot(self.pose_features(v[None])[0], self.pose_offsets, axes=1)
+        if not jacobian:
+            return slide
+        # d features / d v (F, 3); d v / d to_camera; d to_camera / d [omega, t]: turning by
+        # exp(w) adds -R^T [t]x w, moving by dt adds -R^T dt
+        by_v = np.array([[a * x ** max(a - 1, 0) * y ** b, b * x ** a * y ** max(b - 1, 0), 0.0]
+                         for a, b in POSE_FEATURES])
+        by_direction = by_v @ (np.eye(3) - np.outer(v, v)) / length
+        r_t = inverse.as_matrix()
+        by_pose = np.hstack((-r_t @ _skew_rows(translation[None])[0], -r_t))     # (3, 6)
+        return slide, np.einsum("fni,fk->nik", self.pose_offsets, by_direction @ by_pose)
 
     def facing(self, shape, rotation, translation):
         """(n,) cosine between each point's outward normal and the direction to the camera
@@ -157,10 +201,12 @@ class FitResult:
     weights: np.ndarray       # (n,) robust weights in [0, 1] (0: treated as an outlier)
     iterations: int
     scale_px: float           # robust residual scale (pixels)
+    pose_offset: np.ndarray = None   # (n, 3) the points' slide at this pose (model space), if modelled
 
     def camera_points(self):
-        """(n, 3) the fitted shape in camera space."""
-        return self.rotation.apply(self.shape) + self.translation
+        """(n, 3) the fitted points in camera space (with their slide)."""
+        shape = self.shape if self.pose_offset is None else self.shape + self.pose_offset
+        return self.rotation.apply(shape) + self.translation
 
 
 def _skew_rows(v):
@@ -258,11 +304,15 @@ class ShapeFitter:
         iteration = 0
         for iteration in range(1, self.max_iterations + 1):
             shape = self.model.mean + (b @ self._modes_flat).reshape(-1, 3)
+            slide = self.model.pose_offset(rotation, t, jacobian=True)
+            if slide is not None:
+                shape = shape + slide[0]
             y = rotation.apply(shape) + t
             diff = self.camera.project(y) - p
             robust, scale_px = self._robust_weights(diff, conf, huber=iteration <= huber_iterations)
-            jac = self._jacobian(y, t, rotation)
-            depth_rows = None if depth is None else self._depth_rows(y, t, rotation, depth, robust)
+            jy = self._point_jacobian(y, t, rotation, None if slide is None else slide[1])
+            jac = np.einsum("nij,njk->nik", self.camera.jacobian(y), jy).reshape(2 * len(y), -1)
+            depth_rows = None if depth is None else self._depth_rows(y, t, jy[:, 2], depth, robust)
             step = self._gauss_newton_step(jac, diff, robust, b, damping, depth_rows)
             rotation = Rotation.from_rotvec(step[:3]) * rotation
             t = t + step[3:6]
@@ -273,9 +323,11 @@ class ShapeFitter:
             if moved < self.tolerance_px and iteration > huber_iterations:
                 break
         shape = self.model.shape(b)
-        proj = self.camera.project(rotation.apply(shape) + t)
+        slide = self.model.pose_offset(rotation, t)
+        placed = shape if slide is None else shape + slide
+        proj = self.camera.project(rotation.apply(placed) + t)
         dist = np.linalg.norm(proj - p, axis=1)
-        return FitResult(rotation, t, b, shape, proj, dist, robust, iteration, scale_px)
+        return FitResult(rotation, t, b, shape, proj, dist, robust, iteration, scale_px, slide)
 
     def _checked_points(self, points2d, weights):
         """(points (n, 2), confidences, depths (n,) or None): non-finite points get confidence 0
@@ -307,33 +359,32 @@ class ShapeFitter:
             robust = conf * huber_weights(dist, 1.345 * scale_px)
         return robust, scale_px
 
-    def _jacobian(self, y, t, rotation):
-        """d projected points / d [omega, t, b]: (2n, 6 + K) at camera-space points y."""
+    def _point_jacobian(self, y, t, rotation, slide_jacobian=None):
+        """d camera-space points / d [omega, t, b]: (n, 3, 6 + K) at camera-space points y;
+        slide_jacobian (n, 3, 6): the model-space slide's own change with the pose."""
         n, k = len(self.model.mean), len(self.model.eigenvalues)
-        jp = self.camera.jacobian(y)
-        # d y / d [omega, t, b]: (n, 3, 6 + K); omega perturbs on the left: y = exp(w) R x + t
+        # omega perturbs on the left: y = exp(w) R x + t
         jy = np.empty((n, 3, 6 + k))
         jy[:, :, :3] = -_skew_rows(y - t)
         jy[:, :, 3:6] = np.eye(3)
         if k:
             jy[:, :, 6:] = rotation.apply(self.model.modes.reshape(-1, 3)).reshape(k, n, 3).transpose(1, 2, 0)
-        return np.einsum("nij,njk->nik", jp, jy).reshape(2 * n, 6 + k)
+        if slide_jacobian is not None:
+            jy[:, :, :6] += np.einsum("ij,njk->nik", rotation.as_matrix(), slide_jacobian)
+        return jy
 
-    def _depth_rows(self, y, t, rotation, depth, robust):
+    def _depth_rows(self, y, t, depth_jacobian, depth, robust):
         """(jacobian (n, 6 + K), residuals (n,), weights (n,)) of the relative depths: each
         point's depth in pixels (f / t_z times its camera depth) less the weighted mean, against
-        the observed less theirs. The same robust weights as the 2D points."""
-        n, k = len(y), len(self.model.eigenvalues)
+        the observed less theirs. The same robust weights as the 2D points. depth_jacobian
+        (n, 6 + K): d (camera depth) / d [omega, t, b]."""
         w = np.where(np.isfinite(depth), robust, 0.0) * self.depth_weight
         share = w / max(w.sum(), 1e-300)
         f, tz = 0.5 * (self.camera.fx + self.camera.fy), t[2]
         relative = y[:, 2] - share @ y[:, 2]
         observed = np.where(np.isfinite(depth), depth, 0.0)
         residuals = f * relative / tz - (observed - share @ observed)
-        jy = np.zeros((n, 6 + k))                 # d (camera depth) / d [omega, t, b]
-        jy[:, :3] = -_skew_rows(y - t)[:, 2, :]
-        if k:
-            jy[:, 6:] = rotation.apply(self.model.modes.reshape(-1, 3)).reshape(k, n, 3)[:, :, 2].T
+        jy = depth_jacobian
         jac = f / tz * (jy - share @ jy)
         jac[:, 5] -= f * relative / tz ** 2       # the pixel scale f / t_z changes with t_z
         return jac, residuals - share @ residuals, w
@@ -403,7 +454,7 @@ def _neutral_offsets(cam, frames, fits, min_scale_px, stiffness):
     """(n, 3) the per-point offsets of the model that best explain all frames given their fits."""
     jacobians, residuals = [], []
     for points, fit in zip(frames, fits):
-        y = fit.rotation.apply(fit.shape) + fit.translation
+        y = fit.camera_points()
         jacobians.append(cam.jacobian(y) @ fit.rotation.as_matrix())   # d proj / d offset
         residuals.append(points - cam.project(y))
     jac, res = np.array(jacobians), np.array(residuals)      # (F, n, 2, 3), (F, n, 2)
