@@ -1,10 +1,12 @@
 """How the library's clones read on the shared MakeHuman characters (loaded by Blender, world
 space, the face found by rendering and its head region solved): the expression measures of
-core.expression_measures per head. The issue's bars (a blink leaves at most 10% of the open
-height along the whole lid; no edge stretched more than 2.5x beyond the source's own stretch;
-lips sealed at jawOpen + mouthClose within 0.2% of the diagonal) are not reached on these heads
-yet: each test asserts what is reached, with a margin, and says so. Skipped without the shared
-data. Run with -s to see the figures."""
+core.expression_measures per head. The issue's bars: a blink leaves at most 10% of the open
+height along the whole lid (met: the rims' station goals of core.rims), no edge stretched more
+than 2.5x beyond the source's own stretch, lips sealed at jawOpen + mouthClose within 0.2% of
+the diagonal (not reached: the library's own lip landmarks close 0.78% of its diagonal past
+their rest at jawOpen + mouthClose, its lower lip folded under the upper). Where a bar is met
+the test asserts the bar; elsewhere what is reached, with a margin, and says so. Skipped without
+the shared data. Run with -s to see the figures."""
 from functools import lru_cache
 
 import pytest
@@ -19,16 +21,18 @@ from exclone_addon.core.cloning import clone_expressions
 from exclone_addon.core.library import load_library
 
 EXPRESSIONS = ["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthClose"]
-# file -> (face object, reached figures: the closing eye's gap at eyeBlink_L and _R, the worst
-# excess stretch at jawOpen, the flipped triangles at jawOpen); None: no lids are found (the
-# low-poly head's lids are three vertices each)
+BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this share of its opening
+# file -> (face object, whether its lids are found (the low-poly head's are three vertices each:
+# no), the worst excess stretch reached at jawOpen, the flipped triangles at jawOpen). Blinks
+# measured with numpy 1.26 and numpy 2 alike: male body 9.4% / 9.4% (ICT's own blink leaves 9.7%
+# and 7.2% at the inner station), child body 6.8% / 4.9-5.1%, stylised head 7.0% / 6.7-6.8%
+# (with the goals at the vertex map's images: 24% / 18%, 35% / 35%, 67% / 49%).
 REACHED = {
-    "mh_male_body.blend": ("Body", (0.245, 0.176), 3.33, 5),
-    "mh_child_body_expr.blend": ("Body", (0.354, 0.349), 2.76, 0),
-    "mh_stylised_head.blend": ("Head", (0.666, 0.493), 2.05, 2),
-    "mh_head_lowpoly.glb": ("Head", None, 1.84, 0),
+    "mh_male_body.blend": ("Body", True, 3.33, 5),
+    "mh_child_body_expr.blend": ("Body", True, 2.76, 0),
+    "mh_stylised_head.blend": ("Head", True, 2.05, 2),
+    "mh_head_lowpoly.glb": ("Head", False, 1.84, 0),
 }
-GAP_MARGIN = 0.05          # of the open height
 STRETCH_MARGIN = 1.25      # x the reached excess stretch: the worst edge is a tail figure, and the
                            # same code reached 2.05x / 2.41x (stylised head) and 3.33x / 2.98x (male
                            # body) with numpy 1.26 / numpy 2 (rounding amplified by the fit's rules)
@@ -36,7 +40,7 @@ FLIP_MARGIN = 3
 OTHER_EYE = 0.05           # the other eye's gap stays within this of its rest (1)
 LIPS_PART = 0.01           # jawOpen parts the lips by at least this share of the diagonal
                            # (the stylised head, large cranium: 0.013; the others 0.04-0.06)
-LIPS_SEALED = 0.02         # reached: |gap| at jawOpen + mouthClose below 1.5% (bar: 0.2%)
+LIPS_SEALED = 0.02         # reached: |gap| at jawOpen + mouthClose below 1.6% (bar: 0.2%)
 
 
 @lru_cache(maxsize=None)
@@ -62,15 +66,14 @@ def measured(file_name):
 
 @pytest.mark.parametrize("file_name", sorted(REACHED))
 def test_blinks_close_on_their_own_side(file_name, shared_data):
-    found, reached = measured(file_name), REACHED[file_name][1]
-    if reached is None:
+    found = measured(file_name)
+    if not REACHED[file_name][1]:
         assert found["eyeBlink_L"]["eyelid_gap_left"] is None
         assert found["eyeBlink_L"]["eyelid_gap_left_reason"]
         return
-    for (name, closing, other), gap in zip((("eyeBlink_L", "left", "right"),
-                                            ("eyeBlink_R", "right", "left")), reached):
+    for name, closing, other in (("eyeBlink_L", "left", "right"), ("eyeBlink_R", "right", "left")):
         row = found[name]
-        assert row[f"eyelid_gap_{closing}"] <= gap + GAP_MARGIN, (name, row)
+        assert row[f"eyelid_gap_{closing}"] <= BLINK_BAR, (name, row)
         assert abs(row[f"eyelid_gap_{other}"] - 1.0) <= OTHER_EYE, (name, row)
 
 

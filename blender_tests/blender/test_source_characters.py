@@ -47,7 +47,8 @@ STILL = 1e-4            # x the diagonal: the most anything outside the solved r
 STRETCH_BAR = 2.5       # the issue's bar: the clone's stretch beyond the source's own
 FLIP_MARGIN = 3         # triangles beyond the source's own flips of the same unit
 CLOSED = 0.1            # the issue's bar: a closing eye leaves at most this share of its opening
-CROSSED = -0.3          # reached: its lids cross by no more than this share (demo head 22-24%)
+CROSSED = -0.3          # its lids cross by no more than this share (demo head: 6%; 22-24% before
+                        # the rims' station goals)
 OPEN_EYE = 0.06         # the other eye's gap stays within this of its rest (1)
 LIPS_PART = 0.02        # mouth-open parts the lips by at least this share of the diagonal
 SAME_WAY = 0.85         # mean cosine of the clone's and the source's motion where the source moves
@@ -55,12 +56,14 @@ MOVING = 0.25           # ... where the source's motion is above this share of i
 SIZE = (0.6, 1.6)       # the clone's motion / the source's (each x its face's outer eye corners'
                         # distance)
 # (target, unit) -> the figures reached where a bar above is not (measured, not tuned away).
-# On the demo head: the worst edge at the lids' inner rims, and the lids closing past each other
-# (MakeHuman's units are made for the adult head: on the child's own head the lids close to
-# 6-10%, on the demo head they cross by 22%); its mouth-open meets the bar since the vertex map
+# On the demo head: the worst edge at the lids' inner rims, and the lids at the inner station
+# (the rims' station goals close them as far as the child's own lids close, 9.7% and 6.3% there,
+# and leave 12.5% and 11.2-11.8%; with the goals at the vertex map's images they crossed by 22%);
+# its mouth-open meets the bar since the vertex map
 # measures an image's edges along the source (1.6-2.1x; it was 2.8-3.0x, the upper lip's inside
 # hanging down with the jaw in spikes where its corners' images lay across the closed lips). On
-# the ICT neutral (seen on front renders): the lids fold instead of closing, the mouth-open
+# the ICT neutral (seen on front renders; its lids close to 8.9% / 5.8% with the rims' station
+# goals, 44% / 50% before): the mouth-open
 # crumples the cheeks beside the corners (nearly all its flips have a corner whose image lies on
 # a triangle the source's own unit turns over, at the ICT neutral's 3x density), the pursing
 # pulls the mouth sideways and the smile's motion spreads. Checked with margins: excess stretch x 1.25, flips + 10%,
@@ -69,12 +72,12 @@ SIZE = (0.6, 1.6)       # the clone's motion / the source's (each x its face's o
 # 2.7-3.1x with numpy 1.26, 3.55x with numpy 2; on the ICT neutral eye-left-closure 60-70 flips,
 # mouth-open 6.45x and 546 flips with numpy 1.26, 4.48x and 541 with numpy 2).
 REACHED = {
-    ("demo_head", "eye-left-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25},
-    ("demo_head", "eye-right-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25},
-    ("ict_neutral", "eye-left-closure"): {"eyelid_gap": 0.44, "flipped_triangles": 70,
-                                          "cosine": 0.515, "size": 0.43},
-    ("ict_neutral", "eye-right-closure"): {"eyelid_gap": 0.50, "flipped_triangles": 70,
-                                           "cosine": 0.519, "size": 0.42},
+    ("demo_head", "eye-left-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25,
+                                        "eyelid_gap": 0.125},
+    ("demo_head", "eye-right-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25,
+                                         "eyelid_gap": 0.118},
+    ("ict_neutral", "eye-left-closure"): {"flipped_triangles": 70, "cosine": 0.515, "size": 0.43},
+    ("ict_neutral", "eye-right-closure"): {"flipped_triangles": 70, "cosine": 0.519, "size": 0.42},
     ("ict_neutral", "mouth-open"): {"excess_stretch": 6.45, "flipped_triangles": 546,
                                     "cosine": 0.841},
     ("ict_neutral", "mouth-corner-puller"): {"excess_stretch": 2.73, "cosine": 0.649},
@@ -314,7 +317,8 @@ def test_the_command_line_takes_the_body_as_its_source(tmp_path):
         [library.automatic_landmarks[1][library.automatic_landmarks[0].index("nose_tip")]])[0]
     found = report["measures"]["expressions"]
     assert found["mouth-open"]["lip_gap"] > LIPS_PART
-    assert found["eye-left-closure"]["eyelid_gap_left"] <= CLOSED
+    assert found["eye-left-closure"]["eyelid_gap_left"] <= reached("demo_head", "eye-left-closure",
+                                                                   "eyelid_gap", CLOSED)
 
 
 def test_auto_landmarks_put_the_bodys_on_its_face():

@@ -461,7 +461,8 @@ def _transferred(fit, deltas):
         fit._transfer = CorrespondedTransfer(system, fit.aligned_source, fit.source_region,
                                              fit.vertex_map, fit.mapped, fit.pairs, fit.weights)
     if fit._rims is None:
-        fit._rims = RimGoals(fit.target_region, fit.source_region, fit.landmark_names,
+        fit._rims = RimGoals(fit.target_region, fit.aligned_source, fit.source_region,
+                             fit.source_weld.index[fit.source_landmarks], fit.landmark_names,
                              fit.welded_target.index[fit.target_landmarks], fit.vertex_map,
                              fit._transfer.system)
     result = fit._transfer(deltas @ fit.rotation.T * fit.scale, correction=fit._rims)

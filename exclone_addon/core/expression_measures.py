@@ -38,6 +38,15 @@ VIEW_WIDTH = 1.4
 STEEP = 1.0
 # The opening behind the lids lies at least this far (x the eye's width) behind their edge.
 OPEN_DEPTH = 0.1
+# The eye's view draws the surface down to this far (x the eye's width) behind the corners.
+VIEW_DEPTH = 2.0
+# A lid's edge lies at most this far (x the eye's width) behind the corners' line; a socket's
+# walls seen through the opening lie further back (ICT's outer socket: 0.8 behind).
+LID_DEPTH = 0.4
+# A lid's edge lies within this height (x the eye's width) above where its surface begins: the
+# demo head's lower lid shows its thickness over 0.05-0.1 of it; the remeshed ICT face's upper
+# lid is one steep facet up to its crease, 0.3 above.
+NEAR_EDGE = 0.1
 # A lid's visible edge is the one nearest the opening among its margin candidates within this
 # many stations.
 EDGE_WINDOW = 0.05
@@ -71,13 +80,14 @@ class _Frame:
 
 class _Opening:
     """Two corners of an opening (an eye) in the face frame: a point's station s (0 at the
-    first corner, 1 at the second, along the face's across axis) and its height h above the
-    corners' line (along the face's up); moving a point up or down changes only its height."""
+    first corner, 1 at the second, along the face's across axis), its height h above the
+    corners' line (along the face's up) and its depth in front of it (along the face's
+    forward); moving a point up or down changes only its height."""
 
     def __init__(self, first, second, frame):
         self.first, self.forward, self.up = first, frame.forward, frame.up
         along = second - first
-        self.rise = float(along @ frame.up)
+        self.rise, self.sink = float(along @ frame.up), float(along @ frame.forward)
         along = along - (along @ frame.forward) * frame.forward - self.rise * frame.up
         self.width = float(np.linalg.norm(along))
         self.along = along / self.width
@@ -88,65 +98,84 @@ class _Opening:
     def height(self, points):
         return (points - self.first) @ self.up - self.station(points) * self.rise
 
+    def depth(self, points):
+        """How far in front of the corners' line (along the face's forward)."""
+        return (points - self.first) @ self.forward - self.station(points) * self.sink
+
 
 def _eye_view(vertices, triangles, opening):
     """The eye seen from the front (face_render, orthographic along the face's forward):
     (camera, (P, P) depth of each pixel along forward (-inf where no surface), (P, P, 3) the
-    surface point seen, (P, P) its triangle (-1 for none))."""
+    surface point seen, (P, P) its triangle (-1 for none)). Only the triangles within VIEW_DEPTH
+    eye widths behind the corners are drawn: what lies further back (the back of the head seen
+    through a hole) reads as the opening all the same, and costs most of the drawing."""
     centre = opening.first + 0.5 * opening.width * opening.along + 0.5 * opening.rise * opening.up
     camera = Camera.looking(centre, opening.forward, opening.up, VIEW_WIDTH * opening.width,
                             VIEW_PIXELS)
-    seen = render(vertices, triangles, camera)
+    near = (vertices - centre) @ opening.forward > -VIEW_DEPTH * opening.width
+    drawn = np.flatnonzero(near[triangles].any(axis=1))
+    # the shading is not looked at: one normal for all spares the mesh's vertex normals
+    seen = render(vertices, triangles[drawn], camera,
+                  normals=np.broadcast_to(opening.forward, vertices.shape))
     pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
     points, triangle = seen.surface_points(pixels.reshape(-1, 2))
+    triangle = np.where(triangle >= 0, drawn[triangle], -1)
     depth = np.where(triangle >= 0, (points - centre) @ opening.forward, -np.inf)
     shape = (VIEW_PIXELS, VIEW_PIXELS)
     return camera, depth.reshape(shape), points.reshape(shape + (3,)), triangle.reshape(shape)
 
 
-def _edge_pixel(depth, heights):
+def _edge_pixel(depth, heights, width):
     """Index (into a column's pixels ordered from the corners' line outwards, at `heights`) of
     the lid's edge: where the first steep stretch (the surface turned more than 45 degrees away
     from the viewer, or no surface: the opening, a fold into a socket, the top of a lid's
-    thickness) ends; None if the column has none."""
+    thickness) ends, but no more than NEAR_EDGE x the eye's width (`width`) above where the lid's
+    surface begins (after the opening, or a jump in depth from a socket behind): a coarse mesh's
+    lid may be one steep facet up to its crease. None if the column has none."""
     with np.errstate(invalid="ignore"):
-        slope = np.diff(depth) / np.maximum(np.abs(np.diff(heights)), 1e-300)
-    steep = (np.isnan(slope) | (slope > STEEP)) & np.isfinite(depth[1:])
-    steep |= ~np.isfinite(depth[:-1])       # leaving the opening (no surface) is steep
-    first = np.flatnonzero(steep)
-    if not len(first):
+        step = np.diff(depth)
+        slope = step / np.maximum(np.abs(np.diff(heights)), 1e-300)
+        jump = step > OPEN_DEPTH * width        # from a socket far behind onto the lid
+    opening = ~np.isfinite(depth)
+    steep = ((np.isnan(slope) | (slope > STEEP)) & ~opening[1:]) | opening[:-1]
+    first = int(np.argmax(steep))
+    if not steep[first]:
         return None
-    end = first[0]
-    while end + 1 < len(steep) and steep[end + 1]:
-        end += 1
-    return end + 1
+    flat = np.flatnonzero(~steep[first:])
+    end = first + flat[0] - 1 if len(flat) else len(steep) - 1
+    behind = np.flatnonzero(opening[first:end + 1] | jump[first:end + 1])
+    begin = first + behind[-1] + 1 if len(behind) else first
+    near = np.flatnonzero(np.abs(heights[begin:end + 2] - heights[begin]) <= NEAR_EDGE * width)
+    return begin + near[-1]
 
 
 def _seen_margin(vertices, triangles, opening):
     """(upper ids, lower ids, how) of the lid margins as seen from the front: in every pixel
     column between the corners, going up (down) from the corners' line within EYE_REACH x the
-    width, the vertex nearest the lid's edge (_edge_pixel); (None, None, why) without two of each."""
+    width, the vertex nearest the lid's edge (_edge_pixel) where that edge is on the front (not a
+    wall deep in a socket seen through the opening); (None, None, why) without two of each."""
     camera, depth, points, triangle = _eye_view(vertices, triangles, opening)
-    rows = np.arange(VIEW_PIXELS)
+    pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
+    lines = camera.ray_origins(pixels.reshape(-1, 2))
+    stations = opening.station(lines[:VIEW_PIXELS])          # the first row: one per column
+    heights = opening.height(lines).reshape(VIEW_PIXELS, VIEW_PIXELS)
     found = ([], [])
-    for column in range(VIEW_PIXELS):
-        line = camera.ray_origins(np.column_stack([np.full(VIEW_PIXELS, column), rows]))
-        if not 0.05 < opening.station(line[:1])[0] < 0.95:
-            continue
-        heights = opening.height(line)
+    for column in np.flatnonzero((stations > 0.05) & (stations < 0.95)):
         for sign, row in ((1, found[0]), (-1, found[1])):
-            ahead = np.flatnonzero((sign * heights >= 0)
-                                   & (sign * heights <= EYE_REACH * opening.width))
-            ahead = ahead[np.argsort(sign * heights[ahead])]
-            edge = _edge_pixel(depth[ahead, column], heights[ahead])
+            height = sign * heights[:, column]
+            ahead = np.flatnonzero((height >= 0) & (height <= EYE_REACH * opening.width))
+            ahead = ahead[np.argsort(height[ahead])]
+            edge = _edge_pixel(depth[ahead, column], heights[ahead, column], opening.width)
             # the column must start in the opening (no surface, or one far behind the lid):
             # where a lid covers the corners' line, the first steep stretch is a crease above
             if edge is None or triangle[ahead[edge], column] < 0 or \
                     depth[ahead[0], column] > depth[ahead[edge], column] - OPEN_DEPTH * opening.width:
                 continue
+            point = points[ahead[edge], column]
+            if opening.depth(point[None])[0] < -LID_DEPTH * opening.width:
+                continue        # a steep wall deep in a socket seen through the opening
             corners = triangles[triangle[ahead[edge], column]]
-            row.append(corners[np.argmin(np.linalg.norm(
-                vertices[corners] - points[ahead[edge], column], axis=1))])
+            row.append(corners[np.argmin(np.linalg.norm(vertices[corners] - point, axis=1))])
     upper, lower = (np.unique(np.asarray(row, dtype=np.int64)) for row in found)
     if min(len(upper), len(lower)) < 2:
         return None, None, "no lid edges seen between the eye's corners (no opening in front)"

@@ -2,55 +2,79 @@
 
 Deformation transfer carries gradients, not positions: a lid whose skin is taller or shorter
 than the source's turns by the source's gradients and travels a fraction of the way (the
-library's blink left 16% of the demo head's open height). Closing an eye is a positional goal.
+library's blink left 16% of the demo head's open height, 24-67% of the MakeHuman characters').
+Closing an eye is a positional goal.
 
 So after the transfer each eye's lid rows (the visible lid edges the measures read,
 core.expression_measures) get a soft target: every rim vertex keeps its transferred motion
-across and along the face, and its motion along the face's up becomes the source's at its
-corresponding point (the vertex map), where the registration put it. The rest of the face
-follows by least squares on the transfer's own gradient term:
+towards the viewer, and its motion along the face's up (and along the opening) becomes a goal.
+The rest of the face follows by least squares on the transfer's own gradient term:
 
-    min_c  sum_t w_t ||G_t c||^2 + RIM_WEIGHT / h^2 sum_rims ||d_i + c_i - g_i||^2
+    min_c  sum_t w_t ||G_t c||^2 + sum_rims p_i / h^2 ||d_i + c_i - g_i||^2
 
-(d the transfer's solution, h the target's mean edge length). Because d minimises the gradient
-term already, d + c is exactly the solution of the transfer with the positional term added.
-The goals are linear in the source's deltas, so a sum of expressions is corrected as the sum of
-its parts.
+(d the transfer's solution, h the target's mean edge length, p_i the rim vertex's weight). Because
+d minimises the gradient term already, d + c is exactly the solution of the transfer with the
+positional term added. The goals are linear in the source's deltas, so a sum of expressions is
+corrected as the sum of its parts.
 
-The travel is not scaled by the two openings' heights: scaling by the ratio of the rows' rest
-gaps left 11-14% of the demo head's opening at eyeBlink (its images' gap is larger than its
-own) and made new ICT identities overshoot (ICT's expressions are the same deltas on every
-identity); unscaled, the demo head closes to 2% and 5% (docs/method.md §13).
+The goal comes from the source's own lid rows, station by station (_StationRims): where the
+source's row moves up by some share of the source's open height at a station, the rim vertex
+moves up by that share of the target's open height at its station (and along the opening by the
+source's share of its width), so the eye closes as far as the source's does along the whole lid
+however tall either lid is. Where the target's rows zigzag (a
+coarse mesh: its rows pick up skin beyond the rim, which must not travel as the rim does) or the
+source's lids are not found, the goal is the source's motion at the rim vertex's corresponding
+point (the vertex map, _MappedRims), unscaled: exact where the registration is, short where the
+lids differ in height or the registration misses the inner corner.
 """
 import numpy as np
 import scipy.sparse as sp
 
 from . import expression_measures
+from .expression_measures import EYE_STATIONS, row_heights
 from .transfer import EXPRESSIONS_PER_BLOCK, as_columns, as_rows, blocks
 
-# Weight of a rim vertex's goal per unit of squared target edge length: strong enough that the
-# rims reach their goals within a few percent of the lid's travel, soft enough that a rim vertex
-# with a poor image cannot tear the lid.
-RIM_WEIGHT = 100.0
+# Weight of a rim vertex's goal per unit of squared target edge length. From the source's rows:
+# smooth goals, held to within a percent of the open height (at 100, 7% of the lid's travel was
+# left, 19% of the male body's open height at the inner station instead of 12%). From the vertex
+# map: soft enough that a rim vertex with a poor image cannot tear the lid.
+STATION_WEIGHT = 1000.0
+MAPPED_WEIGHT = 100.0
+# The target's rows are smooth enough for station goals where each row keeps within this share of
+# the eye's mean open height of a parabola through it (the shared characters, the demo head and
+# ICT: 0.03-0.10; the remeshed ICT face of the known-answer case: 0.13-0.15).
+ROUGH = 0.12
 
 class RimGoals:
     """The eyes' rim rows on the welded target region, and the factorised correction."""
 
-    def __init__(self, region, source_triangles, landmark_names, landmark_ids, vertex_map,
-                 transfer):
+    def __init__(self, region, source_vertices, source_triangles, source_landmark_ids,
+                 landmark_names, landmark_ids, vertex_map, transfer):
         """region: surface.Surface of the target triangles the transfer solves (welded numbering);
-        source_triangles: the source region's triangles (welded numbering); landmark_names/ids:
-        the fit's target landmarks (welded ids); vertex_map: the fit's correspondence.VertexMap;
-        transfer: the fit's transfer.Transfer (its gradient operator and weights)."""
+        source_vertices (n_source, 3): the aligned source (the target's frame, welded numbering);
+        source_triangles: the source region's triangles; source_landmark_ids, landmark_names,
+        landmark_ids: the fit's source and target landmarks (welded ids); vertex_map: the fit's
+        correspondence.VertexMap; transfer: the fit's transfer.Transfer (its gradient operator
+        and weights)."""
+        names = [str(name) for name in landmark_names]
         openings = expression_measures.Openings(
-            region.vertices, region.triangles,
-            {str(name): int(i) for name, i in zip(landmark_names, landmark_ids)})
-        self.eyes = [eye for eye in (_EyeRims(lids, vertex_map.valid)
-                                     for lids in openings.lids.values()) if eye.usable]
+            region.vertices, region.triangles, dict(zip(names, np.asarray(landmark_ids).tolist())))
+        source_openings = expression_measures.Openings(
+            source_vertices, source_triangles,
+            dict(zip(names, np.asarray(source_landmark_ids).tolist()))) if openings.lids else None
+        self.eyes = []
+        for key, lids in openings.lids.items():
+            source_lids = source_openings.lids.get(key)
+            eye = _StationRims(lids, source_lids, region.vertices, source_vertices) \
+                if source_lids is not None and _smooth(lids, region.vertices) \
+                else _MappedRims(lids, vertex_map, source_triangles)
+            if eye.usable:
+                self.eyes.append(eye)
         self.ids = np.concatenate([eye.ids for eye in self.eyes]) if self.eyes \
             else np.zeros(0, dtype=np.int64)
-        self.images = _Images(vertex_map, source_triangles, self.ids)
-        self.solve = _Correction(transfer, self.ids, RIM_WEIGHT / region.mean_edge_length ** 2) \
+        pulls = np.concatenate([np.full(len(eye.ids), eye.weight) for eye in self.eyes]) \
+            / region.mean_edge_length ** 2 if self.eyes else np.zeros(0)
+        self.solve = _Correction(transfer, self.ids, pulls, np.flatnonzero(vertex_map.valid)) \
             if len(self.ids) else None
 
     def __call__(self, result, source_deltas):
@@ -58,72 +82,141 @@ class RimGoals:
         source_deltas (E, n_source, 3): the expressions on the aligned source."""
         if self.solve is None:
             return result
-        moves_at = self.images.at(source_deltas)                                # (E, k, 3)
-        goals, start = [], 0
+        goals = []
         for eye in self.eyes:
-            mine = slice(start, start + len(eye.ids))
-            goals.append(eye.goals(result, moves_at[:, mine]))
-            start = mine.stop
+            moved = result[:, eye.ids]
+            # the solved motion kept but along the eye's axes (orthonormal): there, the goal's
+            goals.append(moved + (eye.motion(source_deltas) - moved @ eye.axes.T) @ eye.axes)
         goals = np.concatenate(goals, axis=1)                                   # (E, k, 3)
         return result + self.solve(goals - result[:, self.ids])
 
 
-class _Images:
-    """The source at the corresponding points (the vertex map) of the target's rim vertices."""
+def _smooth(lids, vertices):
+    """Whether each of the eye's rows keeps within ROUGH x its mean open height of a parabola
+    through it (along the stations)."""
+    for row in (lids.upper, lids.lower):
+        stations, heights = (f(vertices[row]) for f in (lids.opening.station, lids.opening.height))
+        if len(row) < 4 or np.abs(heights - np.polyval(np.polyfit(stations, heights, 2), stations)
+                                  ).max() > ROUGH * lids.rest.mean():
+            return False
+    return True
 
-    def __init__(self, vertex_map, source_triangles, ids):
-        self.vertex_map, self.source_triangles, self.ids = vertex_map, source_triangles, ids
 
-    def at(self, values):
-        """(E, k, 3) per-source-vertex values (E, n_source, 3) at the rim vertices' images."""
-        return np.moveaxis(self.vertex_map.sample(np.moveaxis(values, 0, 1),
-                                                  self.source_triangles, self.ids), 1, 0)
+class _StationRims:
+    """One eye's rim rows with goals from the source's own lid rows, station by station: at a
+    rim vertex's station along the opening, the source's row moves up by some share of the
+    source's open height there; the rim vertex moves up by that share of the target's open height
+    at the same station, and along the opening by the source's row's motion along it as a share
+    of the source's width, times the target's (the inner corner's rim, where the lid's height
+    changes fastest, reads a slide along as an opening). The eye closes (opens) as far as the
+    source's does, along the whole lid, however tall the two lids are; linear in the source's
+    deltas."""
+
+    weight = STATION_WEIGHT
+
+    def __init__(self, lids, source_lids, vertices, source_vertices):
+        """lids, source_lids: expression_measures' lids of the eye on the rest target and the rest
+        (aligned) source; vertices, source_vertices: the rest positions they are on."""
+        self.axes = np.stack([lids.opening.up, lids.opening.along])
+        self.source_axes = np.stack([source_lids.opening.up, source_lids.opening.along])
+        self.ids = np.concatenate([lids.upper, lids.lower])
+        self.source_ids = np.concatenate([source_lids.upper, source_lids.lower])
+        stations = lids.opening.station(vertices[self.ids])
+        # the heights' ratio between the outermost stations measured: it vanishes at the corners
+        measured = np.clip(stations, EYE_STATIONS[0], EYE_STATIONS[-1])
+        height_scale = _open_height(lids, vertices, measured) \
+            / _open_height(source_lids, source_vertices, measured)
+        share = np.zeros((len(self.ids), len(self.source_ids)))
+        at = [slice(0, len(lids.upper)), slice(len(lids.upper), len(self.ids))]
+        of = [slice(0, len(source_lids.upper)), slice(len(source_lids.upper), len(self.source_ids))]
+        for mine, theirs in zip(at, of):
+            share[mine, theirs] = _interpolation(
+                source_lids.opening.station(source_vertices[self.source_ids[theirs]]),
+                stations[mine])
+        # (axis, k, source rim vertices): up by the heights' ratio, along by the widths'
+        self.shares = np.stack([height_scale[:, None] * share,
+                                share * lids.opening.width / source_lids.opening.width])
+        self.usable = min(len(lids.upper), len(lids.lower)) >= 2
+
+    def motion(self, source_deltas):
+        """(E, k, 2) each rim vertex's goal motion along the face's up and the opening."""
+        along_axes = source_deltas[:, self.source_ids] @ self.source_axes.T      # (E, m, 2)
+        return np.stack([along_axes[..., a] @ self.shares[a].T for a in range(2)], axis=-1)
 
 
-class _EyeRims:
-    """One eye's mapped rim vertices (its upper and lower lid rows) and the face's up."""
+def _open_height(lids, vertices, stations):
+    """(S,) the eye's rest gap between its rows at the stations."""
+    return (row_heights(lids.opening, vertices[lids.upper], stations)
+            - row_heights(lids.opening, vertices[lids.lower], stations))
 
-    def __init__(self, lids, mapped):
-        """lids: expression_measures' lids of the eye on the rest target; mapped: (n,) bool,
-        the target vertices with an image on the source."""
-        self.up = lids.opening.up
+
+def _interpolation(known, wanted):
+    """(len(wanted), len(known)) weights of linear interpolation along one axis (known stations
+    to wanted ones, the nearest end's value beyond them), as np.interp."""
+    order = np.argsort(known)
+    weights = np.zeros((len(wanted), len(known)))
+    weights[:, order] = np.stack([np.interp(wanted, known[order], unit)
+                                  for unit in np.identity(len(known))], axis=1)
+    return weights
+
+
+class _MappedRims:
+    """One eye's rim rows where the source's lids are not found: each rim vertex's goal motion
+    along the face's up is the source's at its corresponding point (the vertex map)."""
+
+    weight = MAPPED_WEIGHT
+
+    def __init__(self, lids, vertex_map, source_triangles):
+        """lids: expression_measures' lids of the eye on the rest target; vertex_map: the fit's
+        correspondence.VertexMap; source_triangles: the source region's triangles."""
+        self.axes = lids.opening.up[None]
+        mapped = vertex_map.valid
         self.ids = np.concatenate([row[mapped[row]] for row in (lids.upper, lids.lower)])
         self.usable = min(mapped[row].sum() for row in (lids.upper, lids.lower)) >= 2
+        self.vertex_map, self.source_triangles = vertex_map, source_triangles
 
-    def goals(self, result, images_moves):
-        """(E, k, 3): each rim vertex's transferred motion with its motion along the face's up
-        replaced by its image's on the source (images_moves (E, k, 3))."""
-        moved = result[:, self.ids]
-        return moved + (images_moves @ self.up - moved @ self.up)[..., None] * self.up
+    def motion(self, source_deltas):
+        """(E, k, 1) the source's motion along the face's up at the rim vertices' images."""
+        moves = self.vertex_map.sample(np.moveaxis(source_deltas, 0, 1), self.source_triangles,
+                                       self.ids)                               # (k, E, 3)
+        return np.moveaxis(moves @ self.axes.T, 0, 1)
 
 
 class _Correction:
     """The correction c of the module docstring, on the transfer's own factorisation: made with
     one back-substitution column per rim vertex, then one back-substitution per call.
 
-    With A = G^T W G (the transfer's normal matrix), p the pull, S the rows of the rim vertices
-    and r their offsets, c solves (A + p S^T S) c = p S^T r. A is singular only by each connected
-    part's translation (the transfer regularises it by a whisper, see core.transfer), so on the
-    parts that hold a rim and no fixed vertex c = u + T t: T those parts' translations, u = A^+ f
-    the zero-mean answer to balanced forces f = S^T y, and the pulls y (k) and translations t
-    solve the small saddle system (Woodbury's identity with the translations split off)
+    With A = G^T W G (the transfer's normal matrix), P the rim vertices' pulls (diagonal), S their
+    rows and r their offsets, c solves (A + S^T P S) c = S^T P r. A is singular only by each
+    connected part's translation (the transfer regularises it by a whisper, see core.transfer),
+    so on the parts that hold a rim and no fixed vertex c = u + T t: T those parts' translations,
+    u = A^+ f the zero-mean answer to balanced forces f = S^T y, and the pulls y (k) and
+    translations t solve the small saddle system (Woodbury's identity with the translations split
+    off)
 
-        [ I/p + S A^+ S^T   S T ] [y]   [r]
+        [ P^-1 + S A^+ S^T  S T ] [y]   [r]
         [ (S T)^T           0   ] [t] = [0]
 
-    A second factorisation of A + p S^T S gives the same c (to 1e-7 of the diagonal at 50k
-    target vertices) but costs more: 0.5-0.7 CPU-s to make and 19 MiB held there, against
-    0.3-0.4 CPU-s and the (k + P)^2 inverse here (166 rim vertices)."""
+    The goals set the shape, not where a floating part sits: its translation is then set as the
+    transfer sets it (no mean motion at its anchors, the mapped vertices), else rim goals that
+    differ from the solved motion by a common amount carried the whole face along (the remeshed
+    known case's blink: 350% error).
 
-    def __init__(self, transfer, ids, pull):
-        """transfer: the fit's transfer.Transfer; ids (k,) the rim vertices; pull: p."""
-        self.transfer, self.pull = transfer, pull
+    A second factorisation of A + S^T P S gives the same c (to 1e-7 of the diagonal at 50k
+    target vertices) but costs more: 0.5-0.7 CPU-s to make and 19 MiB held there, against
+    0.3-0.4 CPU-s and the (k + parts)^2 inverse here (166 rim vertices)."""
+
+    def __init__(self, transfer, ids, pull, anchors):
+        """transfer: the fit's transfer.Transfer; ids (k,) the rim vertices; pull (k,): P; anchors:
+        the vertices that set each floating part's translation in the transfer (the mapped ones)."""
+        self.transfer, self.pull, self.anchors = transfer, pull, anchors
         self.kept = transfer.free[ids]      # a fixed rim vertex stays held: no goal there
-        self.rows = (np.cumsum(transfer.free) - 1)[ids[self.kept]]     # in the free unknowns
+        self.ids = ids[self.kept]
+        self.rows = (np.cumsum(transfer.free) - 1)[self.ids]           # in the free unknowns
         self.parts = _floating_parts(transfer, ids[self.kept])
         self.part_means = (sp.diags(1.0 / np.asarray(self.parts.sum(axis=0)).ravel())
                            @ self.parts.T).tocsr()
-        # small (k + P, k + P) and well conditioned; its inverse is one product a call
+        # small (k + parts, k + parts) and well conditioned; its inverse is one product a call
         self.inverse = np.linalg.inv(self._saddle_matrix())
 
     def _zero_mean(self, values):
@@ -140,25 +233,20 @@ class _Correction:
             compliance[:, chunk] = balanced[self.rows]
         translations = self.parts[self.rows].toarray()                         # S T (k, P)
         matrix = np.zeros((k + n_parts, k + n_parts))
-        matrix[:k, :k] = (compliance + compliance.T) / 2 + np.identity(k) / self.pull
+        matrix[:k, :k] = (compliance + compliance.T) / 2 + np.diag(1.0 / self.pull[self.kept])
         matrix[:k, k:] = translations
         matrix[k:, :k] = translations.T
         return matrix
 
     def __call__(self, offsets):
-        """(E, n, 3) the correction that brings the rim vertices by offsets (E, k, 3)."""
+        """(E, n, 3) the correction that brings the rim vertices by offsets (E, k, 3), each
+        floating part's translation set as the transfer sets it (no mean motion at its anchors)."""
         k, e = len(self.rows), len(offsets)
-        pulls_and_shifts = self.inverse[:, :k] @ as_columns(offsets[:, self.kept])
-        forces = np.zeros((self.parts.shape[0], 3 * e))
-        forces[self.rows] = pulls_and_shifts[:k]        # balanced over each floating part
-        moved = self.transfer.solve(forces)
-        # the translation A^+ leaves out (and rounding's, scaled up by the whisper) made t
-        moved -= self.parts @ (self.part_means @ moved - pulls_and_shifts[k:])
-        if self.transfer.free.all():
-            return as_rows(moved[: self.transfer.n])
-        solution = np.zeros((len(self.transfer.free), 3 * e))
-        solution[self.transfer.free] = moved
-        return as_rows(solution[: self.transfer.n])
+        pulls = (self.inverse[:k, :k] @ as_columns(offsets[:, self.kept]))
+        forces = np.zeros((len(self.transfer.free), 3 * e))
+        forces[self.ids] = pulls            # balanced over each floating part
+        return as_rows(self.transfer.solved(forces, np.zeros((len(self.anchors), 3 * e)),
+                                            self.anchors))
 
 
 def _floating_parts(transfer, ids):
