@@ -21,12 +21,13 @@ OTHER_IDENTITY = 7
 # Measured with the tracker model learnt from FaceMesh's points on other ICT identities
 # (scripts/make_tracker_model.py; mean correlation over the 17 driven shapes, their mean absolute
 # error): bundled head 0.325, 0.056; identity 7: 0.365, 0.059. (With the model of the located
-# points it replaced: 0.320, 0.070; 0.350, 0.067.)
+# points it replaced, on the same frames: 0.320, 0.067; 0.343, 0.067.)
 MEASURED_WEIGHTS = {"moving": (0.29, 0.062), "other_identity": (0.33, 0.065)}
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll):
 # moving 1.57, 3.24, (1.00, 1.02, 1.01); turning 1.45, 2.90, (0.99, 1.01, 1.03);
-# identity 7: 1.53, 4.34, (1.05, 1.02, 1.02). (The located points' model with FaceMesh's depth:
-# moving 2.20, 6.4, pitch 0.87; turning 2.45, 7.0, pitch 0.85; identity 7: 2.26, 6.9, 0.86.)
+# identity 7: 1.53, 4.34, (1.05, 1.02, 1.02). (The located points' model with FaceMesh's depth,
+# on the same frames: moving 2.23, 6.43, pitch 0.85; turning 2.47, 6.63, pitch 0.85; identity 7:
+# 2.38, 6.62, pitch 0.86.)
 MEASURED_POSE = {"moving": (1.9, 3.9), "turning": (1.8, 3.5), "other_identity": (1.9, 5.0)}
 SLOPE_RANGE = (0.93, 1.09)
 
