@@ -65,8 +65,11 @@ class RimGoals:
         self.eyes = []
         for key, lids in openings.lids.items():
             source_lids = source_openings.lids.get(key)
+            # both eyes' rows must trace a lid: a source whose lashes join its lids (an
+            # unwelded ICT welded by position) shows rows of two vertices on the lashes
             eye = _StationRims(lids, source_lids, region.vertices, source_vertices) \
                 if source_lids is not None and _smooth(lids, region.vertices) \
+                and _smooth(source_lids, source_vertices) \
                 else _MappedRims(lids, vertex_map, source_triangles)
             if eye.usable:
                 self.eyes.append(eye)
