@@ -34,6 +34,10 @@ CROSS_CHECKED = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip"
                  "eye_inner_left", "eye_inner_right", "eye_outer_left", "eye_outer_right",
                  "mouth_corner_left", "mouth_corner_right")
 FAR_FROM_FACEMESH = 0.2
+# The mouth corners are no geometric find but the template's, placed from the others: on a face
+# unlike the template (a stylised one's small mouth) they land off the lips, so FaceMesh's are
+# taken from its typical error on: 0.07 eye distances on average on ICT faces (face_finding).
+TEMPLATE_FAR_FROM_FACEMESH = {"mouth_corner_left": 0.1, "mouth_corner_right": 0.1}
 ON_THE_RAY = 0.05
 
 WHAT_TO_DO = ("select the head object, apply its rotation (Object > Apply > Rotation), or place "
@@ -60,19 +64,41 @@ class FaceGuide:
         (CROSS_CHECKED) and those not found at all replaced by FaceMesh's (the front-most of the
         candidate vertices on its ray); (names in landmarks.NAMES order, ids)."""
         found = dict(zip(names, np.asarray(ids, dtype=np.int64).tolist()))
-        across = self.frame.rotation[:, :2]                   # left, up
-        flat = cKDTree(vertices[candidates] @ across)
+        flat = self._across(vertices, candidates)
         for name, point in self.points.items():
             known = found.get(name)
-            if known is None or (name in CROSS_CHECKED and np.linalg.norm(
-                    (vertices[known] - point) @ across) > FAR_FROM_FACEMESH * self.eye_distance):
+            if known is None or (name in CROSS_CHECKED and self._far(vertices[known], point, name)):
                 found[name] = self._on_the_ray(point, vertices, candidates, flat)
         kept = [name for name in NAMES if name in found]
         return kept, np.array([found[name] for name in kept], dtype=np.int64)
 
+    def misplaced_nose_tip(self, names, ids, vertices, candidates):
+        """FaceMesh's nose tip (a candidate vertex) where the automatic landmarks (names, ids)
+        have none or one too far from it, else None. The geometric landmarks are walked from the
+        nose tip and the template placed from them, so a wrong tip (a stylised face's lips
+        standing out further than its nose) misplaces the mouth, the alar creases and the rest
+        with it: they are found again from FaceMesh's."""
+        point = self.points.get("nose_tip")
+        if point is None:
+            return None
+        known = dict(zip(names, np.asarray(ids).tolist())).get("nose_tip")
+        if known is not None and not self._far(vertices[known], point, "nose_tip"):
+            return None
+        return self._on_the_ray(point, vertices, candidates, self._across(vertices, candidates))
+
+    def _across(self, vertices, candidates):
+        """A KD-tree of the candidate vertices seen along the face's forward axis (left, up)."""
+        return cKDTree(vertices[candidates] @ self.frame.rotation[:, :2])
+
+    def _far(self, position, point, name):
+        """Whether landmark `name`'s position lies further from its FaceMesh point across the
+        face (left-up) than FAR_FROM_FACEMESH (TEMPLATE_FAR_FROM_FACEMESH) eye distances."""
+        return np.linalg.norm((position - point) @ self.frame.rotation[:, :2]) \
+            > TEMPLATE_FAR_FROM_FACEMESH.get(name, FAR_FROM_FACEMESH) * self.eye_distance
+
     def _on_the_ray(self, point, vertices, candidates, flat):
         """The front-most candidate within ON_THE_RAY eye distances of the point's ray (along
-        the face's forward axis), else the one nearest to the ray."""
+        the face's forward axis; flat: _across), else the one nearest to the ray."""
         near = flat.query_ball_point(point @ self.frame.rotation[:, :2],
                                      ON_THE_RAY * self.eye_distance)
         if not near:

@@ -250,12 +250,20 @@ def _found(surface, face_guide=None):
         region = _where_the_face_is(surface)
         frame = face_frame(region.vertices, region.triangles, region.search)
         return automatic_landmarks(region.vertices, region.triangles, frame, surface=region)
-    try:
-        names, ids = automatic_landmarks(surface.vertices, surface.triangles, face_guide.frame,
-                                         surface=surface)
-    except ExCloneError:          # too few found by geometry: FaceMesh's points stand in
-        names, ids = [], np.zeros(0, dtype=np.int64)
-    return face_guide.cross_checked(names, ids, surface.vertices, _skin(surface, face_guide))
+    skin = _skin(surface, face_guide)
+
+    def geometric(nose_tip=None):
+        try:
+            return automatic_landmarks(surface.vertices, surface.triangles, face_guide.frame,
+                                       surface=surface, nose_tip=nose_tip)
+        except ExCloneError:      # too few found by geometry: FaceMesh's points stand in
+            return [], np.zeros(0, dtype=np.int64)
+
+    names, ids = geometric()
+    tip = face_guide.misplaced_nose_tip(names, ids, surface.vertices, skin)
+    if tip is not None:           # walked from a wrong tip: found again from FaceMesh's
+        names, ids = geometric(tip)
+    return face_guide.cross_checked(names, ids, surface.vertices, skin)
 
 
 def _skin(surface, face_guide):

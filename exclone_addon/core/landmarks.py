@@ -193,15 +193,19 @@ def _not_found(what):
     return ExCloneError(f"could not find the face's {what}; place the landmarks by hand")
 
 
-def heuristic_landmarks(vertices, triangles, frame=None, parts=None):
+def heuristic_landmarks(vertices, triangles, frame=None, parts=None, nose_tip=None):
     """The heuristic landmarks that exist on this mesh: {name: vertex id}.
     parts: the vertices' connected part labels if already known (a surface.Surface's).
+    nose_tip: the nose tip's vertex if known otherwise (a found face's), where the front-most
+    point of the midline is not it (a stylised face whose lips stand out further than its nose):
+    the profiles are walked from there.
     Raises ExCloneError where the mesh has no surface to look for them on."""
     frame = frame or face_frame(vertices, triangles)
     q = frame.to_canonical(vertices)
     used = np.unique(triangles)
     diag = frame.diagonal
     tip_id, near_mid = _nose_tip(q, used, diag)
+    tip_id = tip_id if nose_tip is None else int(nose_tip)
     tip = q[tip_id]
     # The skin: the part the nose tip is on. Every point snaps to it, and the eye's points are
     # looked for on it alone (eyeballs, lashes and eye occluders sit in front of the opening).
@@ -420,18 +424,18 @@ def checked_ids(ids, n, what):
 
 
 def automatic_landmarks(vertices, triangles, frame=None, template=None, template_normals=None,
-                        surface=None):
+                        surface=None, nose_tip=None):
     """Heuristic landmarks plus template ones: (names, vertex ids), in NAMES order.
 
     template: {name: canonical position}, template_normals: {name: canonical outward normal} of
     the NORMAL_PLACED points; the shipped ones by default. surface: the surface.Surface of these
     vertices and triangles if one is prepared (its parts and outward normals are used, not
-    computed again).
+    computed again). nose_tip: as heuristic_landmarks.
     Raises ExCloneError if too few heuristic points are found to place the template.
     """
     frame = frame or face_frame(vertices, triangles)
     parts = surface.parts if surface is not None else vertex_parts(len(vertices), triangles)
-    found = heuristic_landmarks(vertices, triangles, frame, parts)
+    found = heuristic_landmarks(vertices, triangles, frame, parts, nose_tip)
     template = template if template is not None else _template()
     template_normals = template_normals if template_normals is not None else _template_normals()
     shared = [n for n in RBF_SOURCES if n in found and n in template]
