@@ -72,9 +72,18 @@ class _FindsTheFaceFirst:
     ends the operator, None hands the modal events to self.modal_work. Elsewhere (scripts,
     background Blender) execute() runs at once. Esc cancels the search."""
 
+    _invoked = None
+
+    def started(self):
+        """When this run started: at invoke, so that the face search counts in the reported
+        time; else now (execute called directly, or again from the redo panel)."""
+        started, self._invoked = self._invoked or time.perf_counter(), None
+        return started
+
     def invoke(self, context, event):
         if bpy.app.background or context.window is None:
             return self.execute(context)
+        self._invoked = time.perf_counter()
         try:
             self._search = workflow.FaceSearch(self.face_searches(context)).start()
         except Exception as exc:
@@ -231,7 +240,7 @@ class EXCLONE_OT_clone_expressions(_Engine, bpy.types.Operator):
         return wanted
 
     def plan(self, context):
-        started = time.perf_counter()
+        started = self.started()
         source, source_obj = workflow.resolve_source(context, workflow.target_object(context),
                                                      self.use_library)
         target = workflow.resolve_target(context, source, source_obj)
@@ -292,7 +301,7 @@ class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
         return workflow.face_searches(context, use_library=True)
 
     def plan(self, context):
-        started = time.perf_counter()
+        started = self.started()
         source = workflow.library_source()
         target = workflow.resolve_target(context, source, None)
 
@@ -340,7 +349,7 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
         return _poll_target(cls, context) and _poll_source(cls, context)
 
     def plan(self, context):
-        started = time.perf_counter()
+        started = self.started()
         source, source_obj = workflow.resolve_source(context, workflow.target_object(context),
                                                      self.use_library)
         target = workflow.resolve_target(context, source, source_obj)
@@ -430,7 +439,7 @@ class EXCLONE_OT_auto_landmarks(_FindsTheFaceFirst, bpy.types.Operator):
 
     @reporting
     def execute(self, context):
-        started = time.perf_counter()
+        started = self.started()
         target = workflow.target_object(context)
         source = _landmark_source(context, target)
         sources = [] if source is None else [source]
