@@ -395,18 +395,6 @@ class EXCLONE_OT_remove_preview(bpy.types.Operator):
         return {'FINISHED'}
 
 
-def _landmark_source(context, target):
-    """The source object whose landmarks the landmark operators find and edit, or None (the
-    built-in library, or no usable source chosen)."""
-    if context.scene.exclone.source_mode != 'OBJECT':
-        return None
-    try:
-        source = workflow.source_object(context, target)
-    except ExCloneError:
-        return None
-    return source if source.type == 'MESH' and source is not target else None
-
-
 def _landmark_objects(context):
     """The mesh objects whose landmarks the landmark operators act on: the source object and the
     target character's meshes that hold landmarks. Auto Landmarks stores a character's on its
@@ -416,7 +404,7 @@ def _landmark_objects(context):
     meshes = character.family(target) if target is not None else []
     objects = [obj for obj in meshes if stored_landmarks.IDS in obj] \
         or ([target] if target is not None and target.type == 'MESH' else [])
-    source = _landmark_source(context, target)
+    source = workflow.usable_source_object(context, target)
     return ([source] if source is not None and source not in objects else []) + objects
 
 
@@ -441,7 +429,7 @@ class EXCLONE_OT_auto_landmarks(_FindsTheFaceFirst, bpy.types.Operator):
     def execute(self, context):
         started = self.started()
         target = workflow.target_object(context)
-        source = _landmark_source(context, target)
+        source = workflow.usable_source_object(context, target)
         sources = [] if source is None else [source]
         found = {}   # every object's landmarks first: an error leaves all of them as they were
         for obj in sources:

@@ -432,6 +432,20 @@ def measure(target_name, target_mesh, result, names, deltas, source=None):
     return found
 
 
+def usable_source_object(context, target):
+    """The source object resolve_source would read (source_object, in Object source mode), or
+    None where there is none it could use (the built-in library, none or several chosen, the
+    target itself, no mesh): for the steps that only prepare or edit, and leave the message to
+    resolve_source."""
+    if settings_of(context).source_mode != 'OBJECT':
+        return None
+    try:
+        source = source_object(context, target)
+    except ExCloneError:
+        return None
+    return source if source.type == 'MESH' and source is not target else None
+
+
 def face_searches(context, use_library, every_source=False):
     """The parts lists whose face the operators' resolve_source and resolve_target will look
     for: the source object's (unless it is the built-in library, or its landmarks were edited
@@ -439,15 +453,10 @@ def face_searches(context, use_library, every_source=False):
     read now (main thread) for a FaceSearch. What cannot be resolved is left out: the operator
     itself reports it."""
     target = target_object(context)
-    searches, source_obj = [], None
-    if not (use_library or settings_of(context).source_mode == 'LIBRARY'):
-        try:
-            source_obj = source_object(context, target)
-            if source_obj.type == 'MESH' and (every_source
-                                              or not stored_landmarks.is_edited(source_obj)):
-                searches.append(character.parts([source_obj]))
-        except ExCloneError:
-            pass
+    searches = []
+    source_obj = None if use_library else usable_source_object(context, target)
+    if source_obj is not None and (every_source or not stored_landmarks.is_edited(source_obj)):
+        searches.append(character.parts([source_obj]))
     context.view_layer.update()       # as resolve_target: objects moved by a script
     try:
         searches.append(character.parts(character.character_objects(
