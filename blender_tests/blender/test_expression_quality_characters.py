@@ -31,7 +31,11 @@ BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this shar
 # at jawOpen with numpy 1.26 / numpy 2 (the worst edge, beside the mouth corners): male body
 # 2.39 / 2.94, child body 2.15 / 2.73, stylised head 3.13 / 3.13 (1.7 while its landmarks were
 # walked from its lips, which stand out further than its nose: its mouth then opened 2.1% of the
-# diagonal instead of 3.5%), low-poly head 2.0 / 2.0.
+# diagonal instead of 3.5%), low-poly head 2.0 / 2.0. Not the issue's 2.5: the library's corner
+# strip stretches 7-37x and the mouth corners meet only to 0.05-0.26 mouth widths, so a corner
+# edge's figure rests on which side of the strip its images fall (docs/method.md §7, "At the mouth
+# corners"); between numpy versions one triangle beside it is mapped under one, paired under the
+# other.
 REACHED = {
     "mh_male_body.blend": ("Body", True, 2.94, 4),
     "mh_child_body_expr.blend": ("Body", True, 2.73, 1),
