@@ -367,10 +367,11 @@ def read_inputs(args, paths, timings):
     return Inputs(source, target, landmarks, inputs)
 
 
-def write_outputs(outputs, paths, target, result, timings):
+def write_outputs(outputs, paths, target, result, timings, landmarks, measures):
     """The target's new shape keys, saved (.blend, .glb or .fbx: files.save_result), exported
-    as OBJs and rendered (unless --no-preview); returns (added, replaced, skipped, exported
-    paths or None, preview engine or None)."""
+    as OBJs and rendered (unless --no-preview; with close-ups of the eyes and mouth placed by
+    `landmarks`, {name: (3,) world point}, and chosen by `measures`); returns (added, replaced,
+    skipped, exported paths or None, preview engine or None)."""
     clock = time.perf_counter()
     added, replaced, skipped = mesh_io.write_shape_keys(target.obj, result.names, result.deltas)
     followed = follow_face_keys(target, added, result)
@@ -389,7 +390,8 @@ def write_outputs(outputs, paths, target, result, timings):
     if paths.preview is not None:
         clock = time.perf_counter()
         sheet, engine = preview.contact_sheet(target.obj, target.mesh.vertices[
-            target.face.head.vertex_ids], added)          # framing the head
+            target.face.head.vertex_ids], added,            # framing the head
+            preview.close_ups(landmarks, measures, added))
         outputs.write(paths.preview, lambda path: _write_png(path, sheet))
         timings["preview"] = time.perf_counter() - clock
     return added, replaced, skipped, exported, engine, followed
@@ -468,11 +470,14 @@ def run(args):
     # beside the source, so that the stretch is counted beyond the source's own (excess_stretch)
     measures = measure_clone(face.head.mesh, result, source=inputs.source.mesh,
                              source_deltas=inputs.source.deltas)
+    landmarks = dict(zip(result.landmark_names, face.world_points(
+        face.head.mesh.vertices[np.asarray(result.target_landmarks)])))
     # from here on, the face's object's own numbering and coordinates
     result.deltas = workflow.face_object_deltas(target.obj, face, result.deltas)
     timings["measures"] = time.perf_counter() - clock
     with Outputs() as outputs:
-        written = write_outputs(outputs, paths, inputs.target, result, timings)
+        written = write_outputs(outputs, paths, inputs.target, result, timings, landmarks,
+                                measures)
         result.target_landmarks = face.head.own_ids(result.target_landmarks)
         result.source_landmarks = inputs.source.own_ids(result.source_landmarks)
         timings["total"] = time.perf_counter() - started

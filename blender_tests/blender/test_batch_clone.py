@@ -350,13 +350,39 @@ def test_default_run_report(default_run):
 
 
 def test_default_run_preview_shows_rendered_tiles(default_run):
+    """Two rows of whole heads, then the close-ups: eyes at rest and blinking, mouth at rest
+    and open (the closing and opening expressions are chosen by the measures)."""
     cwd, _ = default_run
     sheet = cv2.imread(str(cwd / "out" / "demo_head_exclone.png"))
-    assert sheet is not None and sheet.shape == (2 * 320, 4 * 320, 3)
-    for row in range(2):
+    assert sheet is not None and sheet.shape == (3 * 320, 4 * 320, 3)
+    tiles = [[sheet[row * 320:(row + 1) * 320, col * 320:(col + 1) * 320].astype(float)
+              for col in range(4)] for row in range(3)]
+    for row in range(3):
         for col in range(4):
-            tile = sheet[row * 320:(row + 1) * 320, col * 320:(col + 1) * 320]
-            assert tile[40:].std() > 10, f"tile {row},{col} is blank"
+            assert tiles[row][col][40:].std() > 10, f"tile {row},{col} is blank"
+    # the close-ups show the face filling the tile, and the expressions change it
+    eyes_rest, eyes_closing, mouth_rest, mouth_open = tiles[2]
+    assert all((tile[40:] != tile[0, -1]).mean() > 0.9 for tile in tiles[2])
+    def changed(rest, moved):        # share of the pixels the expression changes clearly
+        return (np.abs(moved - rest)[40:].max(axis=2) > 20).mean()
+    assert changed(eyes_rest, eyes_closing) > 0.005       # a lid over one eye
+    assert changed(mouth_rest, mouth_open) > 0.1
+
+
+def test_the_preview_falls_back_to_cycles(default_run):
+    """Where Workbench cannot render, the sheet is rendered by CPU Cycles (the settings it needs
+    exist in Blender 4.2+: scene.render.tile_size does not)."""
+    from exclone_addon.blender import preview
+    cwd, _ = default_run
+    bpy.ops.wm.open_mainfile(filepath=str(cwd / "out" / "demo_head_exclone.blend"))
+    head = bpy.data.objects["demo_head"]
+    vertices = np.empty(3 * len(head.data.vertices))
+    head.data.vertices.foreach_get("co", vertices)
+    scene = bpy.context.scene
+    preview._setup_scene(scene, head, vertices.reshape(-1, 3))
+    preview._use_cycles(scene)
+    tile, = preview._rendered_tiles(scene, head.data.shape_keys.key_blocks, ["jawOpen"])
+    assert scene.render.engine == 'CYCLES' and tile[40:].std() > 10
 
 
 def test_run_with_the_reports_landmarks_shapes_and_export(default_run, tmp_path, head):

@@ -343,3 +343,16 @@ def test_the_library_lids_leave_out_its_sockets():
     for name, side in (("eyeBlink_L", "left"), ("eyeBlink_R", "right")):
         stations = found[name][f"eyelid_gap_{side}_stations"]
         assert max(stations) < 0.1 and min(stations) > -0.2, (name, stations)
+
+
+def test_close_ups_show_the_expressions_that_close_an_eye_and_open_the_mouth_furthest():
+    measures = {
+        "blink": {"eyelid_gap_left": 0.08, "eyelid_gap_right": 1.0, "lip_gap": 0.0},
+        "squint": {"eyelid_gap_left": 0.6, "eyelid_gap_right": 0.6, "lip_gap": 0.001},
+        "open": {"eyelid_gap_left": 1.0, "eyelid_gap_right": 1.0, "lip_gap": 0.05},
+        "smile": {"eyelid_gap_left": None, "eyelid_gap_right": 0.9, "lip_gap": 0.004},
+    }
+    assert em.close_up_expressions(measures, list(measures)) == ("blink", "open")
+    # only among the names given (the keys written); none closes or opens enough: None
+    assert em.close_up_expressions(measures, ["squint", "smile"]) == (None, None)
+    assert em.close_up_expressions({}, []) == (None, None)

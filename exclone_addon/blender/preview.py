@@ -1,18 +1,23 @@
 """A contact sheet of a head's expressions: the neutral and up to 7 shape keys rendered from the
-front (Workbench, or CPU Cycles where Workbench cannot render), one label per tile.
+front (Workbench, or CPU Cycles where Workbench cannot render), one label per tile, and a row of
+close-ups: the eyes at rest and closing, the mouth at rest and opening (where a lid that folds
+or a torn mouth corner shows, which a whole-head tile is too small to show).
 
 Renders the current scene, which it sets up for this (camera, resolution, world): meant for the
 command line's throwaway session, not for a user's scene.
 """
 import math
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 
 import bpy
 import cv2
 import numpy as np
+from mathutils import Matrix
 
 from ..core.errors import ExCloneError
+from ..core.expression_measures import FaceAxes, Openings, close_up_expressions
 
 # The neutral plus the first of these that were cloned, then any others, 8 tiles in all.
 FAVOURITES = ("jawOpen", "eyeBlink_L", "mouthSmile_L", "browInnerUp", "browInnerUp_L",
@@ -21,6 +26,47 @@ FAVOURITES = ("jawOpen", "eyeBlink_L", "mouthSmile_L", "browInnerUp", "browInner
 TILES = 8
 TILES_PER_ROW = 4
 TILE_SIZE = 320
+
+
+@dataclass(frozen=True)
+class CloseUp:
+    """A close-up tile: the shape key `name` (None: the neutral) seen along -forward, `up` up,
+    `width` across, centred on `centre` (world space)."""
+    label: str
+    name: object
+    centre: tuple
+    forward: tuple
+    up: tuple
+    width: float
+
+
+# Close-ups: the eyes across this many times the outer eye corners' distance, the mouth this many
+# times the mouth corners'.
+EYES_ACROSS = 1.4
+MOUTH_ACROSS = 2.2
+
+
+def close_ups(points, measures, names):
+    """The CloseUps of a sheet: the eyes at rest and in the expression of `names` that closes an
+    eye furthest, the mouth at rest and in the one that opens it furthest (close_up_expressions;
+    a region without one is left out). points: {landmark name: (3,) world point} of the
+    automatic landmarks (none without them); measures: measure_expressions' result."""
+    if any(name not in points for name in Openings.NEEDED + ("mouth_corner_left",
+                                                             "mouth_corner_right")):
+        return []
+    axes = FaceAxes(points)
+    eyes_name, mouth_name = close_up_expressions(measures, names)
+    found = []
+    for region, name, ends, across in (("eyes", eyes_name, "eye_outer", EYES_ACROSS),
+                                       ("mouth", mouth_name, "mouth_corner", MOUTH_ACROSS)):
+        if name is None:
+            continue
+        left, right = points[f"{ends}_left"], points[f"{ends}_right"]
+        width = across * float(np.linalg.norm(left - right))
+        found += [CloseUp(f"{region}: {label}", key, tuple((left + right) / 2),
+                          tuple(axes.forward), tuple(axes.up), width)
+                  for label, key in (("neutral", None), (name, name))]
+    return found
 
 
 def shown_names(names):
@@ -67,18 +113,34 @@ def _use_cycles(scene):
     scene.cycles.device = 'CPU'
     scene.cycles.samples = 16
     scene.cycles.use_denoising = False
-    scene.render.tile_size = 64
     sun = bpy.data.objects.new("ExClone preview sun", bpy.data.lights.new("ExClone sun", 'SUN'))
     sun.rotation_euler = (math.radians(60), 0.0, math.radians(-25))
     scene.collection.objects.link(sun)
 
 
-def _rendered_tiles(scene, key_blocks, shown):
-    """One image per name (the neutral: every key at 0); falls back to Cycles when Workbench
-    gives no image or a flat one for the first tile."""
+def _aim(camera, close_up):
+    """The camera looking along -forward at the close-up's centre, its up up."""
+    back = np.asarray(close_up.forward, float)
+    back /= np.linalg.norm(back)
+    up = np.asarray(close_up.up, float) - back * np.dot(close_up.up, back)
+    up /= np.linalg.norm(up)
+    pose = np.identity(4)
+    pose[:3, :3] = np.column_stack([np.cross(up, back), up, back])   # camera looks along -Z
+    pose[:3, 3] = np.asarray(close_up.centre, float) + back * 10 * close_up.width
+    camera.matrix_world = Matrix(pose.tolist())      # rows
+    camera.data.ortho_scale = close_up.width
+    camera.data.clip_end = 20 * close_up.width + 1
+
+
+def _rendered_tiles(scene, key_blocks, shown, poses=None):
+    """One image per name (the neutral: every key at 0), the camera aimed by poses[i]
+    (_aim; None: as it is); falls back to Cycles when Workbench gives no image or a flat one
+    for the first tile."""
     tiles = []
     with tempfile.TemporaryDirectory(prefix="exclone_preview_") as tmp:
         for i, name in enumerate(shown):
+            if poses and poses[i] is not None:
+                _aim(scene.camera, poses[i])
             for block in key_blocks[1:]:
                 block.value = 1.0 if block.name == name else 0.0
             tile_path = Path(tmp) / f"{i}.png"
@@ -86,7 +148,7 @@ def _rendered_tiles(scene, key_blocks, shown):
                 tile = _render_tile(scene, tile_path)
             except RuntimeError:
                 tile = None
-            if i == 0 and scene.render.engine == 'BLENDER_WORKBENCH' and (
+            if i == 0 and not poses and scene.render.engine == 'BLENDER_WORKBENCH' and (
                     tile is None or tile.std() < 1.0):
                 _use_cycles(scene)
                 tile = _render_tile(scene, tile_path)
@@ -108,11 +170,20 @@ def _labelled_sheet(tiles, names):
     return np.vstack(rows)
 
 
-def contact_sheet(obj, vertices, names):
+def contact_sheet(obj, vertices, names, close_ups=()):
     """(BGR image, render engine used): the neutral and up to 7 of the object's shape keys
-    `names` (shown_names), rendered in the current scene. vertices: the object's mesh (local)."""
+    `names` (shown_names), rendered in the current scene, then a row of close_ups (CloseUp).
+    vertices: the object's mesh (local)."""
     scene = bpy.context.scene
     _setup_scene(scene, obj, vertices)
     shown = ["neutral"] + shown_names(names)
-    tiles = _rendered_tiles(scene, obj.data.shape_keys.key_blocks, shown)
-    return _labelled_sheet(tiles, shown), scene.render.engine
+    key_blocks = obj.data.shape_keys.key_blocks
+    tiles = _rendered_tiles(scene, key_blocks, shown)
+    labels = list(shown)
+    if close_ups:               # on a row of their own
+        blank = -len(tiles) % TILES_PER_ROW
+        tiles, labels = tiles + [np.full_like(tiles[0], 255)] * blank, labels + [""] * blank
+        tiles += _rendered_tiles(scene, key_blocks, [c.name or "neutral" for c in close_ups],
+                                 list(close_ups))
+        labels += [c.label for c in close_ups]
+    return _labelled_sheet(tiles, labels), scene.render.engine

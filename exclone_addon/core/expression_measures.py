@@ -61,7 +61,7 @@ COMBINED = ("jawOpen", "mouthClose")      # measured together: the lips should m
 MEASURED_TOGETHER = "+".join(COMBINED)
 
 
-class _Frame:
+class FaceAxes:
     """The face's axes from its landmarks: up (eyes above the lips), forward (to the nose tip),
     each a unit vector in the mesh's coordinates."""
 
@@ -234,7 +234,7 @@ class Openings:
             reason = "no landmark " + ", ".join(missing) + " (only automatic landmarks are named)"
             self.reasons = {key: reason for key in ("eye_left", "eye_right", "mouth")}
             return
-        frame = _Frame(points)
+        frame = FaceAxes(points)
         self.up, self.lips = frame.up, (landmarks["upper_lip"], landmarks["lower_lip"])
         self.rest_lips = self._lips_apart(vertices)
         for side in EYES:
@@ -406,6 +406,24 @@ def source_images(vertices, source, source_deltas, result):
 
 
 BLINKS = {"eyeBlink_L": ("left", "right"), "eyeBlink_R": ("right", "left")}   # closes, stays open
+# An expression closes an eye where it leaves less than this share of the eye's open height, and
+# opens the mouth where the lips stand this much (x the diagonal) further apart than at rest.
+CLOSING = 0.5
+OPENING = 0.005
+
+
+def close_up_expressions(measures, names):
+    """(the expression of `names` that closes an eye furthest, the one that opens the mouth
+    furthest), each None if none does: what a close-up of the eyes and of the mouth shows,
+    whatever the expressions are called. measures: measure_expressions' result."""
+    def gap(name):
+        gaps = [measures.get(name, {}).get(f"eyelid_gap_{side}") for side in EYES]
+        return min((g for g in gaps if g is not None), default=None)
+
+    closing = [(gap(name), name) for name in names if gap(name) is not None and gap(name) < CLOSING]
+    opening = [(measures.get(name, {}).get("lip_gap"), name) for name in names]
+    opening = [(lip, name) for lip, name in opening if lip is not None and lip > OPENING]
+    return min(closing)[1] if closing else None, max(opening)[1] if opening else None
 
 
 def summary(measures):
