@@ -82,8 +82,21 @@ def test_weights_reach_the_target(moving):
     assert correlations.mean() >= 0.85 and correlations.min() >= 0.7 and mae <= 0.08, text
 
 
+# Measured on the turning take (a neutral face, its eyes fixed in the head, turning up to 30 deg):
+# the largest weight of any key 0.81 (browDown_L), of the eyes' keys 0.70 (eyeSquint_R; the
+# gaze keys eyeLookOut_L and eyeLookIn_R 0.51, eyeBlink_L 0.31): checked with a margin.
+MEASURED_FALSE_WEIGHT = {"": 0.9, "eye": 0.8}
+
+
+@pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT), ids=["all keys", "eye keys"])
+def test_a_turning_neutral_face_as_measured(turning, keys):
+    value, name = largest_false_weight(*turning, only=keys)
+    assert value <= MEASURED_FALSE_WEIGHT[keys], f"{name} reached {value:.2f}"
+
+
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
-                                       "weight 0.81 (browDown_L); with the true points' "
+                                       "weight 0.81 (browDown_L), the eyes' keys 0.70 "
+                                       "(eyeSquint_R; gaze 0.51); with the true points' "
                                        "projections 0.04: FaceMesh's points slide as the head "
                                        "turns, and the learnt slide leaves 1.4 px median (a slide "
                                        "fitted to this head's own frames: 0.7)")

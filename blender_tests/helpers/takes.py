@@ -300,11 +300,10 @@ def unit_scores(take, tracked):
     return scores
 
 
-def largest_false_weight(take, tracked, leave_out=("eye",)):
+def largest_false_weight(take, tracked, only=""):
     """The largest weight after calibration on a take whose face stays neutral, and its key's
-    name, over the keys whose names do not start with `leave_out` (default: the eyes' keys,
-    which the eye tests check)."""
-    keys = [j for j, name in enumerate(take.names) if not name.startswith(tuple(leave_out))]
+    name, over the keys whose names start with `only` (default: every key)."""
+    keys = [j for j, name in enumerate(take.names) if name.startswith(only)]
     weights = tracked.weights[CALIBRATION_FRAMES:, keys]
     k, j = np.unravel_index(np.nanargmax(weights), weights.shape)
     return float(weights[k, j]), take.names[keys[j]]
