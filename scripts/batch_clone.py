@@ -391,7 +391,7 @@ def write_outputs(outputs, paths, target, result, timings, landmarks, measures):
         clock = time.perf_counter()
         sheet, engine = preview.contact_sheet(target.obj, target.mesh.vertices[
             target.face.head.vertex_ids], added,            # framing the head
-            preview.close_ups(landmarks, measures, added))
+            preview.eye_and_mouth_close_ups(landmarks, measures, added))
         outputs.write(paths.preview, lambda path: _write_png(path, sheet))
         timings["preview"] = time.perf_counter() - clock
     return added, replaced, skipped, exported, engine, followed

@@ -46,7 +46,7 @@ EYES_ACROSS = 1.4
 MOUTH_ACROSS = 2.2
 
 
-def close_ups(points, measures, names):
+def eye_and_mouth_close_ups(points, measures, names):
     """The CloseUps of a sheet: the eyes at rest and in the expression of `names` that closes an
     eye furthest, the mouth at rest and in the one that opens it furthest (close_up_expressions;
     a region without one is left out). points: {landmark name: (3,) world point} of the
