@@ -18,6 +18,7 @@ from mathutils import Matrix
 
 from ..core.errors import ExCloneError
 from ..core.expression_measures import FaceAxes, Openings, close_up_expressions
+from ..core.face_render import Camera
 
 # The neutral plus the first of these that were cloned, then any others, 8 tiles in all.
 FAVOURITES = ("jawOpen", "eyeBlink_L", "mouthSmile_L", "browInnerUp", "browInnerUp_L",
@@ -119,14 +120,12 @@ def _use_cycles(scene):
 
 
 def _aim(camera, close_up):
-    """The camera looking along -forward at the close-up's centre, its up up."""
-    back = np.asarray(close_up.forward, float)
-    back /= np.linalg.norm(back)
-    up = np.asarray(close_up.up, float) - back * np.dot(close_up.up, back)
-    up /= np.linalg.norm(up)
+    """The camera looking along -forward at the close-up's centre, its up up (the axes of
+    face_render's camera, which Blender's camera shares: it looks along its -Z)."""
+    axes = Camera.looking(close_up.centre, close_up.forward, close_up.up, close_up.width).axes
     pose = np.identity(4)
-    pose[:3, :3] = np.column_stack([np.cross(up, back), up, back])   # camera looks along -Z
-    pose[:3, 3] = np.asarray(close_up.centre, float) + back * 10 * close_up.width
+    pose[:3, :3] = axes.T                       # columns: right, up, back
+    pose[:3, 3] = np.asarray(close_up.centre, float) + axes[2] * 10 * close_up.width
     camera.matrix_world = Matrix(pose.tolist())      # rows
     camera.data.ortho_scale = close_up.width
     camera.data.clip_end = 20 * close_up.width + 1

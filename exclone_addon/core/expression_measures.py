@@ -420,9 +420,11 @@ def close_up_expressions(measures, names):
         gaps = [measures.get(name, {}).get(f"eyelid_gap_{side}") for side in EYES]
         return min((g for g in gaps if g is not None), default=None)
 
-    closing = [(gap(name), name) for name in names if gap(name) is not None and gap(name) < CLOSING]
-    opening = [(measures.get(name, {}).get("lip_gap"), name) for name in names]
-    opening = [(lip, name) for lip, name in opening if lip is not None and lip > OPENING]
+    closing = [(g, name) for g, name in ((gap(name), name) for name in names)
+               if g is not None and g < CLOSING]
+    opening = [(lip, name) for lip, name in ((measures.get(name, {}).get("lip_gap"), name)
+                                             for name in names)
+               if lip is not None and lip > OPENING]
     return min(closing)[1] if closing else None, max(opening)[1] if opening else None
 
 
