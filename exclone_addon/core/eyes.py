@@ -73,18 +73,22 @@ class EyeReading:
 
 
 def _eye_frame(left_corner, right_corner):
-    """(origin, x axis, y axis, width) of an eye from its corners in y-up coordinates."""
+    """(origin, x axis, y axis, width) of an eye from its corners (..., 2) in y-up coordinates
+    (any leading axes: one eye or a batch)."""
     axis = right_corner - left_corner
-    width = float(np.hypot(*axis))
-    x = axis / max(width, 1e-12)
-    return (left_corner + right_corner) / 2.0, x, np.array([-x[1], x[0]]), max(width, 1e-12)
+    width = np.maximum(np.hypot(axis[..., 0], axis[..., 1]), 1e-12)
+    x = axis / width[..., None]
+    return (left_corner + right_corner) / 2.0, x, np.stack((-x[..., 1], x[..., 0]), axis=-1), width
 
 
 def _measure(left_corner, right_corner, upper, lower, iris):
+    """(upper-lid height, lower-lid height, iris centre (..., 2)) in the eye's frame from its
+    corners (..., 2), lid points (..., m, 2) and iris centre (..., 2)."""
     origin, x, y, width = _eye_frame(left_corner, right_corner)
-    heights = [float(np.mean((points - origin) @ y)) / width for points in (upper, lower)]
-    centre = (iris - origin) @ np.column_stack((x, y)) / width
-    return heights[0], heights[1], centre
+    heights = [np.einsum("...mi,...i->...m", points - origin[..., None, :], y).mean(axis=-1) / width
+               for points in (upper, lower)]
+    centre = np.einsum("...i,...ij->...j", iris - origin, np.stack((x, y), axis=-1))
+    return heights[0], heights[1], centre / width[..., None]
 
 
 def read_eyes(eyes):
@@ -132,19 +136,27 @@ class EyeGeometry:
             self._frames.append((origin, width, (corners - origin) / width))
 
     def _reading_of(self, k, points, rotation, translation):
-        """One eye's (upper, lower, iris x, iris y) as read_eyes would read the eye's corners and
-        the eye-frame points (upper lid, lower lid, iris) (3, 3) seen in this pose."""
+        """One eye's (upper, lower, iris x, iris y) (..., 4) as read_eyes would read the eye's
+        corners and the eye-frame points (upper lid, lower lid, iris) (..., 3, 3) seen in this
+        pose (one set of points or a batch: all in one projection)."""
         origin, width, corners = self._frames[k]
-        points = np.vstack((corners, points))
-        camera_points = rotation.apply(origin + width * points) + translation
-        image = self.camera.project(camera_points) * np.array([1.0, -1.0])     # y up
-        upper, lower, iris = _measure(image[0], image[1], image[2:3], image[3:4], image[4])
-        return np.array([upper, lower, *iris])
+        points = np.asarray(points, dtype=np.float64)
+        batch = points.shape[:-2]
+        points = np.concatenate((np.broadcast_to(corners, batch + (2, 3)), points), axis=-2)
+        camera_points = rotation.apply((origin + width * points).reshape(-1, 3)) + translation
+        image = (self.camera.project(camera_points) * np.array([1.0, -1.0])).reshape(batch + (5, 2))
+        upper, lower, iris = _measure(image[..., 0, :], image[..., 1, :], image[..., 2:3, :],
+                                      image[..., 3:4, :], image[..., 4, :])     # y up
+        return np.concatenate((upper[..., None], lower[..., None], iris), axis=-1)
 
     @staticmethod
     def _points(upper, lower, iris):
-        """The lids' middles and the iris centre (3, 3) in eye units."""
-        return np.array([[0.0, upper, IRIS_DEPTH_WIDTHS], [0.0, lower, IRIS_DEPTH_WIDTHS], iris])
+        """The lids' middles and the iris centre (..., 3, 3) in eye units, for lid heights (...)
+        and iris centres (..., 3)."""
+        upper, lower = np.asarray(upper, dtype=np.float64), np.asarray(lower, dtype=np.float64)
+        ahead = np.full(upper.shape, IRIS_DEPTH_WIDTHS)
+        lids = [np.stack((np.zeros(upper.shape), height, ahead), axis=-1) for height in (upper, lower)]
+        return np.stack((*lids, np.asarray(iris, dtype=np.float64)), axis=-2)
 
     def frontal(self, reading, rotation, translation, centres=None):
         """The EyeReading this pose's reading would be facing the camera: lid heights and the
@@ -155,14 +167,17 @@ class EyeGeometry:
         r = EYE_RADIUS_WIDTHS
         for k in range(2):
             measured = np.array([reading.upper[k], reading.lower[k], *reading.iris[k]])
+            # points of a batch of unknowns p (B, 4)
             if centres is None:       # unknowns: lids and the centre (eyes ahead)
                 def points(p):
-                    return self._points(p[0], p[1], [p[2], p[3], IRIS_DEPTH_WIDTHS])
+                    ahead = np.full(len(p), IRIS_DEPTH_WIDTHS)
+                    return self._points(p[:, 0], p[:, 1], np.column_stack((p[:, 2], p[:, 3], ahead)))
             else:                     # unknowns: lids and the iris's frontal offset
                 def points(p, c=centres[k]):
-                    x, y = np.clip(p[2:] / r, -0.95, 0.95)
-                    depth = IRIS_DEPTH_WIDTHS - r + r * np.sqrt(max(1.0 - x * x - y * y, 0.05))
-                    return self._points(p[0], p[1], [c[0] + p[2], c[1] + p[3], depth])
+                    x, y = np.clip(p[:, 2:] / r, -0.95, 0.95).T
+                    depth = IRIS_DEPTH_WIDTHS - r + r * np.sqrt(np.maximum(1.0 - x * x - y * y, 0.05))
+                    return self._points(p[:, 0], p[:, 1],
+                                        np.column_stack((c[0] + p[:, 2], c[1] + p[:, 3], depth)))
             start = measured.copy() if centres is None else np.concatenate(
                 (measured[:2], measured[2:] - centres[k]))
             p = _newton(lambda q: self._reading_of(k, points(q), rotation, translation) - measured,
@@ -173,11 +188,15 @@ class EyeGeometry:
 
 
 def _newton(residual, start, step=1e-4):
-    """A few Newton steps on a square residual with a forward-difference Jacobian."""
+    """A few Newton steps on a square residual with a forward-difference Jacobian. residual
+    takes a batch of points (B, n) to theirs (B, n): each step evaluates the point and its n
+    forward steps in one call."""
     p = np.asarray(start, dtype=np.float64).copy()
+    steps = step * np.eye(len(p))
     for _ in range(GEOMETRY_ITERATIONS):
-        r = residual(p)
-        jacobian = np.column_stack([(residual(p + step * e) - r) / step for e in np.eye(len(p))])
+        values = residual(np.vstack((p, p + steps)))
+        r = values[0]
+        jacobian = ((values[1:] - r) / step).T
         try:
             p = p - np.linalg.solve(jacobian, r)
         except np.linalg.LinAlgError:
