@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
-from scipy.optimize import lsq_linear
+from scipy.optimize import lsq_linear, nnls
 
 from . import data
 from .cloning import clone_expressions
@@ -196,8 +196,17 @@ class WeightSolver:
         matrix, c = self._r, self._q.T @ d
         if rows is not None:
             matrix, c = np.vstack((matrix, rows)), np.concatenate((c, targets))
-        result = lsq_linear(matrix, c, bounds=(0.0, 1.0), method="bvls")
-        return result.x
+        # The weights with only w >= 0 (scipy's nnls, about 0.15 ms) are the bounded ones too
+        # when none exceeds 1: the unique optimum over the larger set lies in the box. Only a
+        # frame with a weight past 1 needs lsq_linear's BVLS (about 2.4 ms for the ICT head's 57
+        # keys, which most frames do not need).
+        try:
+            weights, _ = nnls(matrix, c)
+        except RuntimeError:        # out of iterations
+            weights = None
+        if weights is not None and weights.max() <= 1.0:
+            return weights
+        return lsq_linear(matrix, c, bounds=(0.0, 1.0), method="bvls").x
 
     def solve_take(self, displacements):
         """(T, m, 3) -> (T, N)."""
