@@ -128,21 +128,20 @@ class EyeGeometry:
     def __init__(self, neutral_shape, camera):
         shape = np.asarray(neutral_shape, dtype=np.float64)
         self.camera = camera
-        self._frames = []
-        for left, right in FACEMESH_CORNERS:
-            corners = shape[[left, right]]
-            origin = corners.mean(axis=0)
-            width = float(np.linalg.norm(corners[1] - corners[0]))
-            self._frames.append((origin, width, (corners - origin) / width))
+        corners = shape[np.array(FACEMESH_CORNERS)]                 # (eye, corner, xyz)
+        self._origins = corners.mean(axis=1)
+        self._widths = np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)
+        self._corners = (corners - self._origins[:, None]) / self._widths[:, None, None]
 
     def _reading_of(self, k, points, rotation, translation):
-        """One eye's (upper, lower, iris x, iris y) (..., 4) as read_eyes would read the eye's
+        """Eye k's (upper, lower, iris x, iris y) (..., 4) as read_eyes would read the eye's
         corners and the eye-frame points (upper lid, lower lid, iris) (..., 3, 3) seen in this
-        pose (one set of points or a batch: all in one projection)."""
-        origin, width, corners = self._frames[k]
+        pose. k: 0 or 1, or an array of them shaped as points' leading axes (a batch of both
+        eyes' points: all in one projection)."""
         points = np.asarray(points, dtype=np.float64)
         batch = points.shape[:-2]
-        points = np.concatenate((np.broadcast_to(corners, batch + (2, 3)), points), axis=-2)
+        origin, width = self._origins[k][..., None, :], self._widths[k][..., None, None]
+        points = np.concatenate((np.broadcast_to(self._corners[k], batch + (2, 3)), points), axis=-2)
         camera_points = rotation.apply((origin + width * points).reshape(-1, 3)) + translation
         image = (self.camera.project(camera_points) * np.array([1.0, -1.0])).reshape(batch + (5, 2))
         upper, lower, iris = _measure(image[..., 0, :], image[..., 1, :], image[..., 2:3, :],
@@ -162,45 +161,48 @@ class EyeGeometry:
         """The EyeReading this pose's reading would be facing the camera: lid heights and the
         iris's frontal position in eye widths. centres (2, 2): each iris's centre of rotation
         (x, y; the calibrated neutral's iris); None while calibrating: the eyes are taken to
-        look ahead and the centres are what is solved for."""
-        upper, lower, iris = np.zeros(2), np.zeros(2), np.zeros((2, 2))
+        look ahead and the centres are what is solved for. Both eyes are solved together."""
         r = EYE_RADIUS_WIDTHS
-        for k in range(2):
-            measured = np.array([reading.upper[k], reading.lower[k], *reading.iris[k]])
-            # points of a batch of unknowns p (B, 4)
-            if centres is None:       # unknowns: lids and the centre (eyes ahead)
-                def points(p):
-                    ahead = np.full(len(p), IRIS_DEPTH_WIDTHS)
-                    return self._points(p[:, 0], p[:, 1], np.column_stack((p[:, 2], p[:, 3], ahead)))
-            else:                     # unknowns: lids and the iris's frontal offset
-                def points(p, c=centres[k]):
-                    x, y = np.clip(p[:, 2:] / r, -0.95, 0.95).T
-                    depth = IRIS_DEPTH_WIDTHS - r + r * np.sqrt(np.maximum(1.0 - x * x - y * y, 0.05))
-                    return self._points(p[:, 0], p[:, 1],
-                                        np.column_stack((c[0] + p[:, 2], c[1] + p[:, 3], depth)))
-            start = measured.copy() if centres is None else np.concatenate(
-                (measured[:2], measured[2:] - centres[k]))
-            p = _newton(lambda q: self._reading_of(k, points(q), rotation, translation) - measured,
-                        start)
-            upper[k], lower[k] = p[0], p[1]
-            iris[k] = p[2:] if centres is None else centres[k] + p[2:]
-        return EyeReading(upper, lower, iris, reading.width)
+        measured = np.column_stack((reading.upper, reading.lower, reading.iris))      # (2, 4)
+        # the eye-frame points of both eyes' unknowns p (2, B, 4)
+        if centres is None:       # unknowns: lids and the centre (eyes ahead)
+            def points(p):
+                ahead = np.full(p.shape[:-1], IRIS_DEPTH_WIDTHS)
+                return self._points(p[..., 0], p[..., 1], np.stack((p[..., 2], p[..., 3], ahead), axis=-1))
+            start = measured
+        else:                     # unknowns: lids and the iris's frontal offset
+            centres = np.asarray(centres, dtype=np.float64)
+
+            def points(p):
+                x, y = np.moveaxis(np.clip(p[..., 2:] / r, -0.95, 0.95), -1, 0)
+                depth = IRIS_DEPTH_WIDTHS - r + r * np.sqrt(np.maximum(1.0 - x * x - y * y, 0.05))
+                iris = centres[:, None] + p[..., 2:]
+                return self._points(p[..., 0], p[..., 1], np.stack((iris[..., 0], iris[..., 1], depth), axis=-1))
+            start = np.column_stack((measured[:, :2], measured[:, 2:] - centres))
+        eye = np.arange(2)[:, None]
+        p = _newton(lambda q: self._reading_of(eye, points(q), rotation, translation) - measured[:, None],
+                    start)
+        iris = p[:, 2:] if centres is None else centres + p[:, 2:]
+        return EyeReading(p[:, 0], p[:, 1], iris, reading.width)
 
 
 def _newton(residual, start, step=1e-4):
-    """A few Newton steps on a square residual with a forward-difference Jacobian. residual
-    takes a batch of points (B, n) to theirs (B, n): each step evaluates the point and its n
-    forward steps in one call."""
-    p = np.asarray(start, dtype=np.float64).copy()
-    steps = step * np.eye(len(p))
+    """A few Newton steps on square residuals with forward-difference Jacobians, for several
+    problems at once: start (P, n); residual takes points (P, B, n) to theirs (P, B, n), so each
+    step evaluates every problem's point and its n forward steps in one call. A problem whose
+    Jacobian is singular keeps its last point."""
+    p = np.array(start, dtype=np.float64)
+    steps = step * np.eye(p.shape[1])
+    going = np.ones(len(p), dtype=bool)
     for _ in range(GEOMETRY_ITERATIONS):
-        values = residual(np.vstack((p, p + steps)))
-        r = values[0]
-        jacobian = ((values[1:] - r) / step).T
-        try:
-            p = p - np.linalg.solve(jacobian, r)
-        except np.linalg.LinAlgError:
-            break
+        values = residual(np.concatenate((p[:, None], p[:, None] + steps), axis=1))
+        r = values[:, 0]
+        jacobians = np.swapaxes((values[:, 1:] - r[:, None]) / step, 1, 2)
+        for k in np.flatnonzero(going):
+            try:
+                p[k] = p[k] - np.linalg.solve(jacobians[k], r[k])
+            except np.linalg.LinAlgError:
+                going[k] = False
     return p
 
 
