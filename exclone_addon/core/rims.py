@@ -99,13 +99,13 @@ class RimGoals:
 
 def _smooth(lids, vertices):
     """Whether each of the eye's rows keeps within ROUGH x its mean open height of a cubic through
-    it along the stations (of lower degree on a row of fewer than six vertices, which a cubic
-    would nearly pass through)."""
+    it along the stations (a parabola through a row of four or five vertices, which a cubic would
+    nearly pass through)."""
     for row in (lids.upper, lids.lower):
         if len(row) < 4:
             return False
         stations, heights = (f(vertices[row]) for f in (lids.opening.station, lids.opening.height))
-        fitted = np.polyval(np.polyfit(stations, heights, min(3, len(row) - 3)), stations)
+        fitted = np.polyval(np.polyfit(stations, heights, 3 if len(row) >= 6 else 2), stations)
         if np.abs(heights - fitted).max() > ROUGH * lids.rest.mean():
             return False
     return True
