@@ -1,7 +1,10 @@
 """core.rims' correction on the transfer's own factorisation gives the correction the module
 docstring defines: the solution of (A + S^T P S) c = S^T P r on the free unknowns (A the
 transfer's normal matrix), solved directly here, each floating part then translated to no mean
-motion at its anchors, for free-floating parts and held ones, in both formulations."""
+motion at its anchors, for free-floating parts and held ones, in both formulations. And which
+lid rows count as smooth enough for the station goals, on rows measured on shared heads."""
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
@@ -58,3 +61,47 @@ def test_correction_is_the_direct_solve(head, formulation, held):
     assert np.abs(found - wanted).max() < 1e-6 * diagonal(vertices)
     if held:
         assert not found[:, transfer.fixed].any()
+
+
+def lid_rows(upper, lower):
+    """Lids whose rows are the given (stations, heights / mean open height) pairs, as
+    rims._smooth reads them (a vertex's x its station, y its height); and their vertices."""
+    points = [np.column_stack([s, h, np.zeros(len(s))]) for s, h in (upper, lower)]
+    vertices = np.concatenate(points)
+    opening = SimpleNamespace(station=lambda p: p[:, 0], height=lambda p: p[:, 1])
+    ids = np.arange(len(vertices))
+    lids = SimpleNamespace(upper=ids[:len(points[0])], lower=ids[len(points[0]):],
+                           opening=opening, rest=np.ones(7))
+    return lids, vertices
+
+
+# Rows measured on shared characters (station, height / mean open height). The old woman's Body
+# object alone: its lower lid's lowest point lies two thirds out, 0.157 from a parabola.
+OLD_WOMAN_LEFT = (
+    ([-0.009, 0.132, 0.133, 0.279, 0.455, 0.63, 0.768, 0.88, 0.983],
+     [0.487, 0.499, 0.472, 0.516, 0.433, 0.442, 0.25, 0.14, 0.199]),
+    ([0.039, 0.081, 0.132, 0.212, 0.226, 0.333, 0.337, 0.479, 0.647, 0.659, 0.771, 0.857, 0.958],
+     [-0.368, -0.298, -0.372, -0.489, -0.445, -0.555, -0.515, -0.592, -0.671, -0.739, -0.66,
+      -0.481, -0.124]))
+# The remeshed ICT face of the known-answer case: its upper row zigzags between the rim and the
+# skin above it.
+KNOWN_CASE_RIGHT = (
+    ([0.069, 0.259, 0.361, 0.483, 0.588, 0.733, 0.807, 0.932],
+     [0.081, 0.066, 0.158, 0.231, 0.018, 0.086, 0.39, 0.371]),
+    ([0.082, 0.152, 0.288, 0.384, 0.488, 0.588, 0.649],
+     [-0.562, -0.832, -0.781, -0.851, -0.858, -0.817, -0.923]))
+
+
+def test_a_skewed_smooth_lid_takes_the_station_goals():
+    assert rims._smooth(*lid_rows(*OLD_WOMAN_LEFT))
+
+
+def test_a_zigzag_row_takes_the_image_goals():
+    assert not rims._smooth(*lid_rows(*KNOWN_CASE_RIGHT))
+
+
+def test_a_short_arched_row_is_smooth_and_a_shorter_one_is_not_judged():
+    arch = ([0.1, 0.4, 0.6, 0.9], [0.3, 0.55, 0.5, 0.2])
+    lower = ([0.1, 0.3, 0.5, 0.7, 0.9], [-0.2, -0.45, -0.5, -0.4, -0.15])
+    assert rims._smooth(*lid_rows(arch, lower))
+    assert not rims._smooth(*lid_rows((arch[0][:3], arch[1][:3]), lower))
