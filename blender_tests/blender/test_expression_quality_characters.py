@@ -59,10 +59,17 @@ LIPS_PRESSED = 0.02        # reached: and press together past rest by less than 
 
 
 @lru_cache(maxsize=None)
-def measured(file_name):
-    """The expression measures of the library's clone onto the file's face, beside the source."""
+def measured(file_name, decimated=False):
+    """The expression measures of the library's clone onto the file's face, beside the source;
+    decimated: the face object through Decimate (collapse, ratio 0.5) first, applied, as a
+    game-ready lower-poly head is made from it."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     face_object = load_into_scene(SHARED_DATA / "characters" / file_name)[REACHED[file_name][0]]
+    if decimated:
+        decimate = face_object.modifiers.new("game-ready", 'DECIMATE')
+        decimate.ratio = 0.5
+        with bpy.context.temp_override(object=face_object, active_object=face_object):
+            bpy.ops.object.modifier_apply(modifier=decimate.name)
     part = character.Part(face_object.name, blender_character.world_polymesh(face_object))
     face = character.find([part])
     library = load_library().subset(EXPRESSIONS)
@@ -71,7 +78,7 @@ def measured(file_name):
                                face_guide=face.guide, fixed_vertices=face.head.fixed)
     found = em.measure_clone(face.head.mesh, result, source=library.mesh,
                              source_deltas=library.deltas)
-    print(f"\n{file_name}: " + "; ".join(
+    print(f"\n{file_name}{' decimated' if decimated else ''}: " + "; ".join(
         f"{name}: " + ", ".join(f"{key} {row[key]:.4g}" for key in (
             "eyelid_gap_left", "eyelid_gap_right", "lip_gap", "excess_stretch",
             "flipped_triangles") if row.get(key) is not None)
@@ -106,3 +113,17 @@ def test_jaw_opens_without_more_stretch_than_reached(file_name, shared_data):
 def test_lips_seal_at_jaw_open_with_mouth_close(file_name, shared_data):
     gap = measured(file_name)[em.MEASURED_TOGETHER]["lip_gap"]
     assert -LIPS_PRESSED < gap <= LIPS_SEALED
+
+
+def test_blink_closes_on_a_decimated_head(shared_data):
+    """The stylised head through Decimate (collapse 0.5, applied: 2,096 vertices, a game-ready
+    head): its rim vertices stand 0.1-0.2 stations apart, and on the right upper lid an edge
+    triangle's nearest corner is the skin above the lid (0.113 eye widths beyond its neighbours'
+    line), which made the row rough: the rims took the vertex map's goals and eyeBlink_R left
+    68% of the open height; the row without it: 4.2% (numpy 1.26 and 2 alike). Not reached: its
+    left eye (83% / 63% left open with numpy 1.26 / 2): its upper row keeps a skin vertex 0.078
+    eye widths beyond its neighbours' line, and without it five true rim vertices are judged
+    rough against a parabola (0.17 of the open height): the vertex map's goals either way."""
+    row = measured("mh_stylised_head.blend", decimated=True)["eyeBlink_R"]
+    assert row["eyelid_gap_right"] <= BLINK_BAR, row
+    assert abs(row["eyelid_gap_left"] - 1.0) <= OTHER_EYE, row

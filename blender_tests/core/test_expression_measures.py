@@ -2,6 +2,7 @@
 on the demo head (eyes modelled as sockets), on the bundled library's own mesh and on a real
 clone, and MakeHuman's own blink on its own topology."""
 from functools import lru_cache
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -198,6 +199,22 @@ def test_demo_head_lids_are_its_visible_lid_edges():
     assert 2178 in lids.upper and 2221 in lids.lower
     assert 4216 not in lids.upper and 3105 not in lids.upper
     assert lids.rest[3] == pytest.approx(0.0843, abs=0.002)
+
+
+def test_a_coarse_lid_row_keeps_its_arch_and_drops_the_skin_above_it():
+    # a coarse upper lid (rim vertices 0.2 stations apart, arching 0.2 eye widths high: each
+    # stands 0.032 above its neighbours' line) and, between two of them, a vertex of the skin
+    # 0.1 above the rim (what an edge triangle's nearest corner is on a decimated head)
+    frame = SimpleNamespace(up=np.array([0.0, 1.0, 0.0]), forward=np.array([0.0, 0.0, 1.0]))
+    opening = em._Opening(np.zeros(3), np.array([1.0, 0.0, 0.0]), frame)
+    stations = np.array([0.1, 0.3, 0.5, 0.7, 0.9])
+    rim = np.stack([stations, 0.8 * stations * (1 - stations), np.zeros(5)], axis=1)
+    skin = [0.6, 0.8 * 0.6 * 0.4 + 0.1, 0.0]
+    vertices = np.vstack([rim, skin])
+    assert em._visible_edge(np.arange(6), opening, vertices, 1).tolist() == [0, 1, 2, 3, 4]
+    # the same row as a lower lid (mirrored): the skin below it goes the same way
+    mirrored = vertices * [1.0, -1.0, 1.0]
+    assert em._visible_edge(np.arange(6), opening, mirrored, -1).tolist() == [0, 1, 2, 3, 4]
 
 
 @pytest.mark.parametrize("fraction", [1.0, 0.5])
