@@ -146,9 +146,9 @@ class ShapeModel:
         length = np.linalg.norm(to_camera)
         v = to_camera / length
         x, y = v[0], v[1]
-        slide = np.tensordot(self.pose_features(v[None])[0], self.pose_offsets, axes=1)
+        features = self.pose_features(v[None])
         if not jacobian:
-            return slide
+            return np.tensordot(features[0], self.pose_offsets, axes=1)
         # d features / d v (F, 3); d v / d to_camera; d to_camera / d [omega, t]: turning by
         # exp(w) adds -R^T [t]x w, moving by dt adds -R^T dt
         by_v = np.array([[a * x ** max(a - 1, 0) * y ** b, b * x ** a * y ** max(b - 1, 0), 0.0]
@@ -156,9 +156,10 @@ class ShapeModel:
         by_direction = by_v @ (np.eye(3) - np.outer(v, v)) / length
         r_t = inverse.as_matrix()
         by_pose = np.hstack((-r_t @ _skew_rows(translation[None])[0], -r_t))     # (3, 6)
-        # one (6, F) @ (F, 3n) product (an einsum over the same axes took twice as long)
-        return slide, np.tensordot(by_direction @ by_pose, self.pose_offsets,
-                                   axes=(0, 0)).transpose(1, 2, 0)
+        # the slide and its derivative in one (7, F) @ (F, 3n) product
+        both = np.tensordot(np.vstack((features, (by_direction @ by_pose).T)), self.pose_offsets,
+                            axes=(1, 0))
+        return both[0], both[1:].transpose(1, 2, 0)
 
     def facing(self, shape, rotation, translation):
         """(n,) cosine between each point's outward normal and the direction to the camera
