@@ -11,6 +11,7 @@ pose, shape and landmarks; then, with an avatar, its shape-key weights (core.ret
 eyes' lids and gaze (core.eyes) as further targets of the same bounded solve.
 """
 import time
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -37,8 +38,10 @@ FIT_TOLERANCE_PX = 0.05
 # and 94.0 pixels on the astronaut photograph.)
 FOLLOW_GRACE_S = 1.0
 SAME_WIDTH_RATIO = 1.4
-# The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs).
-STAGES = ("detect", "landmarks", "iris", "fit", "weights")
+# The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs):
+# "eyes" reads the iris model's points and brings them frontal. "iris" runs on its own thread
+# beside "fit": the stages add up to more than the step.
+STAGES = ("detect", "landmarks", "iris", "fit", "eyes", "weights")
 
 
 class LandmarkFilter:
@@ -121,6 +124,9 @@ class FaceTrackingSession:
         self.detector = face_models.FaceDetector(models_dir)
         self.landmarker = face_models.FaceLandmarker(models_dir)
         self.iris = face_models.IrisLandmarker(models_dir)
+        # The iris model runs on a thread of its own beside the shape fit (OpenCV's forward pass
+        # releases the GIL): a step takes the longer of the two, not their sum.
+        self._iris_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ExClone iris")
         tracker_model = tracker_model or load_tracker_model()
         self.model = tracker_model.shape_model
         self._depth_weight = tracker_model.depth_weight
@@ -255,13 +261,20 @@ class FaceTrackingSession:
         points, detected = self._find_face(image, timestamp, stage_ms)
         if points is None:
             return self._lost(stage_ms)
-        self._followed_box, self._seen_at = face_models.landmarks_box(points), timestamp
-        roi = face_models.roi_from_landmarks(points)
-        self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
+        eyes_read = self._iris_thread.submit(self._timed_eyes, image, points)
+        try:
+            self._followed_box, self._seen_at = face_models.landmarks_box(points), timestamp
+            roi = face_models.roi_from_landmarks(points)
+            self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
+            return self._track(points, timestamp, stage_ms, restart=detected, eyes_read=eyes_read)
+        finally:
+            wait([eyes_read])       # the image is the caller's again only once the iris is read
+
+    def _timed_eyes(self, image, points):
+        """(The iris model's EyeLandmarks, its milliseconds)."""
         start = time.perf_counter()
         eye_points = self.iris.eyes(image, points)
-        stage_ms["iris"] = 1000 * (time.perf_counter() - start)
-        return self._track(points, timestamp, stage_ms, restart=detected, eye_points=eye_points)
+        return eye_points, 1000 * (time.perf_counter() - start)
 
     def step_landmarks(self, landmarks, timestamp, image_size=None):
         """One frame from given landmarks (468, 2 or 3) in pixels, past the image models (for
@@ -294,7 +307,8 @@ class FaceTrackingSession:
                            stage_ms=stage_ms, status=status)
 
     # -- shape fit and calibration (docs/method.md §11), weights (§12)
-    def _track(self, points, timestamp, stage_ms, restart, eye_points=None, depth=True):
+    def _track(self, points, timestamp, stage_ms, restart, eyes_read=None, depth=True):
+        """eyes_read: a Future of _timed_eyes (the iris model running beside the fit), or None."""
         # the fit reads the points' relative depth (FaceMesh's z) too, when they have one
         observed = points if depth else points[:, :2]
         if restart or self.still_images:
@@ -305,13 +319,21 @@ class FaceTrackingSession:
         fit = self._fitter.fit(observed, previous=self._previous_fit)
         self._previous_fit = fit
         stage_ms["fit"] = 1000 * (time.perf_counter() - start)
+        # the filters need only the fit: run while the iris model may still be running (on the
+        # last calibration frame the calibration replaces the fit and restarts them: after it)
+        pose = None if self._pending else self._shown_pose(fit, points, timestamp)
+        eye_points = None
+        if eyes_read is not None:
+            eye_points, stage_ms["iris"] = eyes_read.result()
+        start = time.perf_counter()
         reading = eyes.read_eyes(eye_points) if eye_points is not None else None
-        if self._pending:
-            fit = self._calibration_frame(observed, reading, fit, stage_ms)
-        elif reading is not None and self.eye_neutral is not None:
+        if not self._pending and reading is not None and self.eye_neutral is not None:
             reading = self._eye_geometry.frontal(reading, fit.rotation, fit.translation,
                                                  self.eye_neutral.iris)
-        pose = self._shown_pose(fit, points, timestamp)
+        stage_ms["eyes"] = 1000 * (time.perf_counter() - start)
+        if self._pending:
+            fit = self._calibration_frame(observed, reading, fit, stage_ms)
+            pose = self._shown_pose(fit, points, timestamp)
         head_rotation = weights = None
         if self.calibrated:
             relative = self.neutral_rotation.inv() * pose.rotation     # in the face's own axes

@@ -13,6 +13,8 @@ limited and the engine runs as before, only slower on a busy machine.
 import contextlib
 import functools
 
+import cv2
+
 try:
     from threadpoolctl import ThreadpoolController, threadpool_limits
 except ImportError:
@@ -39,14 +41,33 @@ def _pools():
     return ThreadpoolController()
 
 
+@contextlib.contextmanager
 def step_threads(limit=ENGINE_THREADS):
     """engine_threads for a live-tracking frame (core.session): the pools found at the first
     call, limited without inspecting them again (0.01 ms instead of 2 ms a frame). The shape
     fit's and the weight solve's small matrices cost 2.3 and 2.9 times the CPU on OpenBLAS's
-    default pool of 2 threads (measured by scripts/bench_track.py)."""
-    if ThreadpoolController is None:
-        return contextlib.nullcontext()
-    return _pools().limit(limits=limit)
+    default pool of 2 threads (measured by scripts/bench_track.py). OpenCV's own pool is
+    limited too: the step runs the iris model on a thread of its own beside the fit, and
+    OpenCV's threads beside them made the step slower (14.0 ms against 13.2 median, 24 CPU ms
+    against 19, scripts/bench_track.py on 2 cores)."""
+    with opencv_threads(limit):
+        if ThreadpoolController is None:
+            yield
+            return
+        with _pools().limit(limits=limit):
+            yield
+
+
+@contextlib.contextmanager
+def opencv_threads(count):
+    """Within: OpenCV's own parallel loops (its networks' layers among them) on `count` threads
+    (a setting of the whole process); as before afterwards."""
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(count)
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(before)
 
 
 def limited_threads(function):
