@@ -32,6 +32,8 @@ import numpy as np
 OUTER, INNER = 0, 8
 LOWER_LID = (3, 4, 5)
 UPPER_LID = (11, 12, 13)
+# (x, y) -> (-y, x): a quarter turn, from an eye's x axis to its y axis.
+_QUARTER_TURN = np.array([-1.0, 1.0])
 # ARKit's suffix of each eye in the reading's order.
 SIDES = ("_R", "_L")
 # The iris centre's distance from the eyeball's centre of rotation in eye widths (corner to
@@ -78,30 +80,29 @@ def _eye_frame(left_corner, right_corner):
     axis = right_corner - left_corner
     width = np.maximum(np.hypot(axis[..., 0], axis[..., 1]), 1e-12)
     x = axis / width[..., None]
-    return (left_corner + right_corner) / 2.0, x, np.stack((-x[..., 1], x[..., 0]), axis=-1), width
+    return (left_corner + right_corner) / 2.0, x, x[..., ::-1] * _QUARTER_TURN, width
 
 
 def _measure(left_corner, right_corner, upper, lower, iris):
     """(upper-lid height, lower-lid height, iris centre (..., 2)) in the eye's frame from its
     corners (..., 2), lid points (..., m, 2) and iris centre (..., 2)."""
     origin, x, y, width = _eye_frame(left_corner, right_corner)
-    heights = [np.einsum("...mi,...i->...m", points - origin[..., None, :], y).mean(axis=-1) / width
-               for points in (upper, lower)]
-    centre = np.einsum("...i,...ij->...j", iris - origin, np.stack((x, y), axis=-1))
+    heights = [np.einsum("...mi,...i->...m", points - origin[..., None, :], y).sum(axis=-1)
+               / points.shape[-2] / width for points in (upper, lower)]
+    offset = iris - origin
+    centre = np.concatenate((np.einsum("...i,...i->...", offset, x)[..., None],
+                             np.einsum("...i,...i->...", offset, y)[..., None]), axis=-1)
     return heights[0], heights[1], centre / width[..., None]
 
 
 def read_eyes(eyes):
     """EyeReading from face_models.EyeLandmarks (image pixels, y down)."""
     flip = np.array([1.0, -1.0])
-    upper, lower, iris = np.zeros(2), np.zeros(2), np.zeros((2, 2))
-    for k in range(2):
-        contour, centre = eyes.contours[k] * flip, eyes.irises[k, 0] * flip
-        # eye 0's outer corner is on the image's left, eye 1's on its right
-        left, right = (OUTER, INNER) if k == 0 else (INNER, OUTER)
-        upper[k], lower[k], iris[k] = _measure(contour[left], contour[right],
-                                               contour[list(UPPER_LID)], contour[list(LOWER_LID)],
-                                               centre)
+    contours = eyes.contours * flip
+    # eye 0's outer corner is on the image's left, eye 1's on its right
+    corners = contours[[[0], [1]], [[OUTER, INNER], [INNER, OUTER]]]
+    upper, lower, iris = _measure(corners[:, 0], corners[:, 1], contours[:, list(UPPER_LID)],
+                                  contours[:, list(LOWER_LID)], eyes.irises[:, 0] * flip)
     widths = np.linalg.norm(eyes.contours[:, OUTER] - eyes.contours[:, INNER], axis=1)
     return EyeReading(upper, lower, iris, widths)
 
@@ -152,10 +153,11 @@ class EyeGeometry:
     def _points(upper, lower, iris):
         """The lids' middles and the iris centre (..., 3, 3) in eye units, for lid heights (...)
         and iris centres (..., 3)."""
-        upper, lower = np.asarray(upper, dtype=np.float64), np.asarray(lower, dtype=np.float64)
-        ahead = np.full(upper.shape, IRIS_DEPTH_WIDTHS)
-        lids = [np.stack((np.zeros(upper.shape), height, ahead), axis=-1) for height in (upper, lower)]
-        return np.stack((*lids, np.asarray(iris, dtype=np.float64)), axis=-2)
+        points = np.zeros(np.shape(upper) + (3, 3))
+        points[..., 0, 1], points[..., 1, 1] = upper, lower
+        points[..., :2, 2] = IRIS_DEPTH_WIDTHS
+        points[..., 2, :] = iris
+        return points
 
     def frontal(self, reading, rotation, translation, centres=None):
         """The EyeReading this pose's reading would be facing the camera: lid heights and the
@@ -167,17 +169,19 @@ class EyeGeometry:
         # the eye-frame points of both eyes' unknowns p (2, B, 4)
         if centres is None:       # unknowns: lids and the centre (eyes ahead)
             def points(p):
-                ahead = np.full(p.shape[:-1], IRIS_DEPTH_WIDTHS)
-                return self._points(p[..., 0], p[..., 1], np.stack((p[..., 2], p[..., 3], ahead), axis=-1))
+                found = self._points(p[..., 0], p[..., 1], IRIS_DEPTH_WIDTHS)
+                found[..., 2, :2] = p[..., 2:]
+                return found
             start = measured
         else:                     # unknowns: lids and the iris's frontal offset
             centres = np.asarray(centres, dtype=np.float64)
 
             def points(p):
                 x, y = np.moveaxis(np.clip(p[..., 2:] / r, -0.95, 0.95), -1, 0)
-                depth = IRIS_DEPTH_WIDTHS - r + r * np.sqrt(np.maximum(1.0 - x * x - y * y, 0.05))
-                iris = centres[:, None] + p[..., 2:]
-                return self._points(p[..., 0], p[..., 1], np.stack((iris[..., 0], iris[..., 1], depth), axis=-1))
+                found = self._points(p[..., 0], p[..., 1], IRIS_DEPTH_WIDTHS - r + r * np.sqrt(
+                    np.maximum(1.0 - x * x - y * y, 0.05))[..., None])
+                found[..., 2, :2] = centres[:, None] + p[..., 2:]
+                return found
             start = np.column_stack((measured[:, :2], measured[:, 2:] - centres))
         eye = np.arange(2)[:, None]
         p = _newton(lambda q: self._reading_of(eye, points(q), rotation, translation) - measured[:, None],
