@@ -426,10 +426,22 @@ class IrisLandmarker:
 
     def eyes(self, image_bgr, landmarks):
         """EyeLandmarks for an 8-bit BGR image and FaceMesh's (468, 2 or 3) points in it."""
-        matrices = self._crop_matrices(landmarks)
-        blob = cv2.dnn.blobFromImages(self.crops(image_bgr, landmarks), 1.0 / 255.0, swapRB=True)
+        return self.read(self.run(self.input_blob(image_bgr, landmarks)), landmarks)
+
+    # eyes() in three parts, so that the network can run on another thread than the rest
+    def input_blob(self, image_bgr, landmarks):
+        """The network's input: both eyes' crops, one batch."""
+        return cv2.dnn.blobFromImages(self.crops(image_bgr, landmarks), 1.0 / 255.0, swapRB=True)
+
+    def run(self, blob):
+        """The network's outputs for an input_blob."""
         self.net.setInput(blob)
-        contours, irises = self._split_outputs(self.net.forward(self.output_names))
+        return self.net.forward(self.output_names)
+
+    def read(self, outputs, landmarks):
+        """EyeLandmarks from the network's outputs for the crops of these landmarks."""
+        matrices = self._crop_matrices(landmarks)
+        contours, irises = self._split_outputs(outputs)
         both = np.concatenate([contours, irises], axis=1)[..., :2].astype(np.float64)
         # continuous crop coordinates (0..64) -> pixel centres -> image pixels, per eye
         image_points = np.stack([(eye - 0.5) @ matrix[:, :2].T + matrix[:, 2]
