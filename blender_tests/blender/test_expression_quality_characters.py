@@ -30,19 +30,19 @@ BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this shar
 # woman's body (the fbx's Body object alone) 8.0% / 4.9% (with the goals at the vertex map's
 # images: 24% / 18%, 35% / 35%, 67% / 49%; the old woman's left eye took them while the rows'
 # smoothness was judged against a parabola: 27%). Excess stretch
-# at jawOpen with numpy 1.26 / numpy 2 (the worst edge, beside the mouth corners): male body
-# 2.39 / 2.94, child body 2.15 / 2.73, stylised head 3.13 / 3.13 (1.7 while its landmarks were
-# walked from its lips, which stand out further than its nose: its mouth then opened 2.1% of the
-# diagonal instead of 3.5%), low-poly head 2.0 / 2.0, old woman's body 3.42 / 3.36. Not the
-# issue's 2.5: the library's corner strip stretches 7-37x and the mouth corners meet only to
-# 0.05-0.26 mouth widths, so a corner edge's figure rests on which side of the strip its images
-# fall (docs/method.md §7, "At the mouth corners"); between numpy versions one triangle beside it
-# is mapped under one, paired under the other.
+# at jawOpen in .venv / .venv313 (Blender 5.0.1 and 5.2 load the heads 1e-15 apart; the worst
+# edge, beside the mouth corners): male body 2.39 / 2.94, child body 1.83 / 2.81, stylised head
+# 1.70 / 1.72 (the bar met), low-poly head 2.0 / 2.0, old woman's body 3.43 / 3.36; before the
+# straddling images took their source triangles' mean gradient (core.transfer.STRADDLE): 2.39 /
+# 2.94, 2.15 / 2.73, 3.13 / 3.13, 2.0 / 2.0, 3.42 / 3.36. Not the issue's 2.5 on three: the
+# library's corner strip stretches 7-37x and the mouth corners meet only to 0.05-0.26 mouth
+# widths, so a corner edge's figure rests on which side of the strip its images fall, and each
+# figure is one draw from a wide spread (docs/method.md §7, "At the mouth corners").
 REACHED = {
     "mh_male_body.blend": ("Body", True, 2.94, 4),
-    "mh_child_body_expr.blend": ("Body", True, 2.73, 1),
-    "mh_female_old_body.fbx": ("Body", True, 3.42, 3),
-    "mh_stylised_head.blend": ("Head", True, 3.13, 2),
+    "mh_child_body_expr.blend": ("Body", True, 2.81, 1),
+    "mh_female_old_body.fbx": ("Body", True, 3.43, 3),
+    "mh_stylised_head.blend": ("Head", True, 1.72, 0),
     "mh_head_lowpoly.glb": ("Head", False, 2.0, 0),
 }
 STRETCH_MARGIN = 1.25      # x the reached excess stretch: the worst edge is a tail figure that
@@ -59,17 +59,21 @@ LIPS_PRESSED = 0.02        # reached: and press together past rest by less than 
 
 
 @lru_cache(maxsize=None)
-def measured(file_name, decimated=False):
+def measured(file_name, decimated=False, triangulated=False):
     """The expression measures of the library's clone onto the file's face, beside the source;
     decimated: the face object through Decimate (collapse, ratio 0.5) first, applied, as a
-    game-ready lower-poly head is made from it."""
+    game-ready lower-poly head is made from it; triangulated: through Triangulate, applied, as
+    many game exports are."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     face_object = load_into_scene(SHARED_DATA / "characters" / file_name)[REACHED[file_name][0]]
-    if decimated:
-        decimate = face_object.modifiers.new("game-ready", 'DECIMATE')
-        decimate.ratio = 0.5
+    for wanted, kind in ((decimated, 'DECIMATE'), (triangulated, 'TRIANGULATE')):
+        if not wanted:
+            continue
+        modifier = face_object.modifiers.new("game-ready", kind)
+        if kind == 'DECIMATE':
+            modifier.ratio = 0.5
         with bpy.context.temp_override(object=face_object, active_object=face_object):
-            bpy.ops.object.modifier_apply(modifier=decimate.name)
+            bpy.ops.object.modifier_apply(modifier=modifier.name)
     part = character.Part(face_object.name, blender_character.world_polymesh(face_object))
     face = character.find([part])
     library = load_library().subset(EXPRESSIONS)
@@ -78,7 +82,8 @@ def measured(file_name, decimated=False):
                                face_guide=face.guide, fixed_vertices=face.head.fixed)
     found = em.measure_clone(face.head.mesh, result, source=library.mesh,
                              source_deltas=library.deltas)
-    print(f"\n{file_name}{' decimated' if decimated else ''}: " + "; ".join(
+    print(f"\n{file_name}{' decimated' if decimated else ''}"
+          f"{' triangulated' if triangulated else ''}: " + "; ".join(
         f"{name}: " + ", ".join(f"{key} {row[key]:.4g}" for key in (
             "eyelid_gap_left", "eyelid_gap_right", "lip_gap", "excess_stretch",
             "flipped_triangles") if row.get(key) is not None)
@@ -129,3 +134,15 @@ def test_blink_closes_on_a_decimated_head(shared_data):
     row = measured("mh_stylised_head.blend", decimated=True)["eyeBlink_R"]
     assert row["eyelid_gap_right"] <= BLINK_BAR, row
     assert abs(row["eyelid_gap_left"] - 1.0) <= OTHER_EYE, row
+
+
+def test_jaw_opens_on_a_triangulated_body(shared_data):
+    """The old woman's Body through Triangulate (applied, as many game exports are): a few of
+    its target triangles beside the mouth corners had their corners' images on both lips, which
+    part at jawOpen (an image stretched 5x beyond the source triangles under its corners; in a
+    batch job, where the automatic landmarks fell a hair differently, 105-110x: a torn corner,
+    94.9x excess stretch and 27 flips). Such a straddling image now takes the mean gradient of
+    the source triangles under its corners (core.transfer.STRADDLE): 5.0x -> 3.08x / 2.99x
+    excess stretch at jawOpen (.venv / .venv313; the batch's 94.9x -> 3.21x)."""
+    jaw = measured("mh_female_old_body.fbx", triangulated=True)["jawOpen"]
+    assert jaw["excess_stretch"] <= STRETCH_MARGIN * 3.08, jaw

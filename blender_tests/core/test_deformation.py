@@ -456,3 +456,16 @@ def test_triangle_surface_closest_matches_brute_force_over_all_triangles(head):
         p_rep = np.broadcast_to(p, a.shape)
         brute[i] = np.linalg.norm(brute_closest(p_rep, a, b, c) - p, axis=1).min()
     np.testing.assert_allclose(dist, brute, atol=1e-9 * diag)
+
+
+def test_largest_stretch_is_the_in_plane_maps_largest_singular_value():
+    # the straddle check's stretch (core.transfer) from the edges' Gram matrices against numpy's
+    # SVD of the map D R^+ that takes each triangle's rest edges R to its deformed edges D
+    rng = np.random.default_rng(3)
+    rest, deformed = rng.normal(size=(2, 200, 3, 2))
+    expected = [np.linalg.svd(d @ np.linalg.pinv(r), compute_uv=False)[0]
+                for r, d in zip(rest, deformed)]
+    gram = [transfer._gram(edges[..., 0], edges[..., 1]) for edges in (rest, deformed)]
+    assert np.allclose(transfer._largest_stretch(*gram), expected, rtol=1e-9)
+    flat = np.stack([rest[:, :, 0], 2 * rest[:, :, 0]], axis=-1)        # degenerate rest: 0
+    assert not transfer._largest_stretch(transfer._gram(flat[..., 0], flat[..., 1]), gram[1]).any()

@@ -95,6 +95,15 @@ def _no_unique_solution():
 EXPRESSIONS_PER_BLOCK = 8
 # Mapped triangles whose images' 4th vertices are made together (memory-bound elementwise work)
 TRIANGLES_PER_CHUNK = 8192
+# A mapped triangle's image may stretch (its largest stretch within its plane, per expression)
+# at most this many times as far as the most stretched source triangle under its corners (or
+# 1): beyond, its corners' images lie on two sides of an opening that parts (the lips at a mouth
+# corner, where the library closes its corners with a strip of thin triangles), and it takes the
+# mean gradient of the source triangles under its corners instead. Within one source triangle an
+# image stretches exactly as that triangle does; spanning the source triangles between its
+# corners it read up to 2.4 on the remeshed known-answer face (its exact registration), across
+# the parting lips 105-110 (the old woman's triangulated body, a torn mouth corner).
+STRADDLE = 3.0
 
 
 class Transfer:
@@ -230,8 +239,10 @@ class CorrespondedTransfer:
         self.sampling = _barycentric_sampling(vertex_map, source_triangles, self.anchors,
                                               system.n, len(source_rest))
         rest_at = self.sampling @ source_rest          # the source under each mapped vertex
-        self._image_operators(rest_at, np.flatnonzero(mapped))
+        self.mapped_ids = np.flatnonzero(mapped)
+        self._image_operators(rest_at, self.mapped_ids)
         self.constant = system.constant + self.from_moves @ rest_at
+        self._straddle_checks(rest_at, source_triangles, vertex_map)
         self._pair_operators(source_triangles, pairs, weights, np.flatnonzero(~mapped & (weights > 0)))
 
     @property
@@ -255,6 +266,14 @@ class CorrespondedTransfer:
         self.image_edges = [sp.csr_matrix((np.tile([-1.0, 1.0], m), (ends, corners[:, [0, k]].ravel())),
                                           shape=(m, n)) for k in (1, 2)]
         self.rest_image_edges = [edge @ rest_at for edge in self.image_edges]
+
+    def _straddle_checks(self, rest_at, source_triangles, vertex_map):
+        """What the STRADDLE check needs: the images' rest edges' Gram matrices and the source
+        triangles under each mapped triangle's corners."""
+        self.rest_at = rest_at
+        self.rest_image_gram = _gram(*self.rest_image_edges)                   # (3, m)
+        self.under = source_triangles[
+            vertex_map.triangle[self.system.triangles[self.mapped_ids]]]            # (m, 3, 3)
 
     def _pair_operators(self, source_triangles, pairs, weights, paired_ids):
         """The paired triangles' share: the source triangles they use, and the weighted mean of
@@ -284,17 +303,51 @@ class CorrespondedTransfer:
         b = len(deltas)
         rhs = np.repeat(self.constant, b, axis=1)
         rhs += self.from_moves @ moves
-        rhs += self.from_offsets @ self._image_offsets(moves, b)
+        offsets, stretch = self._image_offsets(moves, b)
+        rhs += self.from_offsets @ offsets
         if self.from_source_gradients is not None:
             gradients = deformation.full_gradients(self.source_rest, self.source_rest + deltas,
                                                    self.used_source_triangles)
             rhs += self.from_source_gradients @ as_columns(deformation.stack_gradients(gradients))
+        self._straddling_replaced(rhs, deltas, moves, stretch)
         return rhs
 
+    def _straddling_replaced(self, rhs, deltas, moves, stretch):
+        """rhs (N, 3B) with each straddling image's gradient (STRADDLE) replaced by the mean
+        gradient of the source triangles under its triangle's three corners; stretch (m, B):
+        the images' own."""
+        b = len(deltas)
+        ids, expression = np.nonzero(stretch > STRADDLE)       # the limit is at least STRADDLE
+        rest_sources = self.source_rest[self.under[ids]]                         # (F, 3, 3, 3)
+        sources = rest_sources + deltas[expression[:, None, None], self.under[ids]]
+        under = _largest_stretch(_gram(*_corner_edges(rest_sources)),
+                                 _gram(*_corner_edges(sources)))                 # (F, 3)
+        straddling = stretch[ids, expression] > STRADDLE * np.maximum(under.max(axis=1), 1.0)
+        ids, expression = ids[straddling], expression[straddling]
+        rest_sources, sources = rest_sources[straddling], sources[straddling]
+        if not len(ids):
+            return
+        corners = self.system.triangles[self.mapped_ids[ids]]                    # (F, 3)
+        image = deformation.corner_gradients(
+            self.rest_at[corners], self.rest_at[corners] + as_rows(moves)[expression[:, None], corners])
+        wanted = deformation.corner_gradients(rest_sources, sources).mean(axis=1)
+        rows = (3 * self.mapped_ids[ids][:, None] + np.arange(3)).ravel()
+        change = np.zeros((len(rows), 3 * b))
+        stacked = self.system.given_rows_weight[rows, None] * \
+            deformation.stack_gradients(wanted - image)                          # (3F, 3)
+        for axis in range(3):          # each coordinate's column of its expression
+            change[np.arange(len(rows)), axis * b + np.repeat(expression, 3)] = stacked[:, axis]
+        # these rows of G reach only their triangles' own unknowns: update those alone
+        own = self.system.grad[rows]
+        unknowns = np.unique(own.indices)
+        rhs[unknowns] += own[:, unknowns].T @ change
+
     def _image_offsets(self, moves, b):
-        """(m, 3B) the 4th-vertex offsets of the mapped triangles' deformed images."""
+        """(m, 3B) the 4th-vertex offsets of the mapped triangles' deformed images, and (m, B)
+        their largest stretch within their planes."""
         first, second = (edge @ moves for edge in self.image_edges)            # (m, 3B)
         offsets = np.empty_like(first)
+        stretch = np.empty((len(first), b))
         # a few thousand triangles at a time: the cross product's temporaries stay in cache
         for rows in blocks(len(first), TRIANGLES_PER_CHUNK):
             images = []
@@ -304,7 +357,36 @@ class CorrespondedTransfer:
                 edges += rest[rows, :, None]
                 images.append(edges)
             offsets[rows].reshape(-1, 3, b)[...] = deformation.fourth_offsets(*images, axis=1)
-        return offsets
+            stretch[rows] = _largest_stretch(self.rest_image_gram[:, rows, None],
+                                             _gram(*images, axis=1))
+        return offsets, stretch
+
+
+def _corner_edges(corners):
+    """(..., 3) each triangle's edges from its first corner, v2 - v1 and v3 - v1, of its corners
+    (..., 3, 3)."""
+    return corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]
+
+
+def _gram(first, second, axis=-1):
+    """(3, ...) the Gram matrices' entries (e1.e1, e1.e2, e2.e2) of edge pairs (xyz along axis)."""
+    return np.stack([np.sum(first * first, axis=axis), np.sum(first * second, axis=axis),
+                     np.sum(second * second, axis=axis)])
+
+
+def _largest_stretch(rest, deformed):
+    """The largest singular value of the map taking triangles' rest edges to deformed ones
+    within their planes, from the Gram matrices' entries (3, ...) of each: the square root of
+    the larger root of det(D - s R) = 0. A degenerate rest triangle (its edges within 1e-6
+    radians of parallel) reads 0: it has no plane to stretch in."""
+    r11, r12, r22 = rest
+    d11, d12, d22 = deformed
+    area = r11 * r22 - r12 * r12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        half_trace = (r22 * d11 - 2 * r12 * d12 + r11 * d22) / (2 * area)
+        determinant = (d11 * d22 - d12 * d12) / area
+        largest = half_trace + np.sqrt(np.maximum(half_trace * half_trace - determinant, 0.0))
+    return np.where(area > 1e-12 * r11 * r22, np.sqrt(np.maximum(largest, 0.0)), 0.0)
 
 
 def _barycentric_sampling(vertex_map, source_triangles, ids, n_target, n_source):
