@@ -34,10 +34,14 @@ _EDGES_3 = np.array([[-1.0, -1.0], [1.0, 0.0], [0.0, 1.0]])
 _EDGES_4 = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
+def corner_edges(corners):
+    """(v2 - v1, v3 - v1), each (..., 3), of triangles given as corners (..., 3, 3)."""
+    return corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]
+
+
 def _fourth_corner(corners):
     """Sumner's 4th vertex for triangles given as corners (..., 3, 3): v1 + n / sqrt(|n|)."""
-    return corners[..., 0, :] + fourth_offsets(corners[..., 1, :] - corners[..., 0, :],
-                                               corners[..., 2, :] - corners[..., 0, :])
+    return corners[..., 0, :] + fourth_offsets(*corner_edges(corners))
 
 
 def fourth_offsets(first_edges, second_edges, axis=-1):
@@ -67,9 +71,8 @@ def fourth_vertices(vertices, triangles):
 
 def _augmented_edges(corners):
     """(..., 3, 3) edge matrices [v2-v1, v3-v1, v4-v1] as columns."""
-    v4 = _fourth_corner(corners)
-    return np.stack([corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :],
-                     v4 - corners[..., 0, :]], axis=-1)
+    return np.stack([*corner_edges(corners), _fourth_corner(corners) - corners[..., 0, :]],
+                    axis=-1)
 
 
 def edge_pseudo_inverses(vertices, triangles, rel_eps=1e-10):

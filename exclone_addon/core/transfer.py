@@ -320,8 +320,8 @@ class CorrespondedTransfer:
         ids, expression = np.nonzero(stretch > STRADDLE)       # the limit is at least STRADDLE
         rest_sources = self.source_rest[self.under[ids]]                         # (F, 3, 3, 3)
         sources = rest_sources + deltas[expression[:, None, None], self.under[ids]]
-        under = _largest_stretch(_gram(*_corner_edges(rest_sources)),
-                                 _gram(*_corner_edges(sources)))                 # (F, 3)
+        under = _largest_stretch(_gram(*deformation.corner_edges(rest_sources)),
+                                 _gram(*deformation.corner_edges(sources)))      # (F, 3)
         straddling = stretch[ids, expression] > STRADDLE * np.maximum(under.max(axis=1), 1.0)
         ids, expression = ids[straddling], expression[straddling]
         rest_sources, sources = rest_sources[straddling], sources[straddling]
@@ -360,12 +360,6 @@ class CorrespondedTransfer:
             stretch[rows] = _largest_stretch(self.rest_image_gram[:, rows, None],
                                              _gram(*images, axis=1))
         return offsets, stretch
-
-
-def _corner_edges(corners):
-    """(..., 3) each triangle's edges from its first corner, v2 - v1 and v3 - v1, of its corners
-    (..., 3, 3)."""
-    return corners[..., 1, :] - corners[..., 0, :], corners[..., 2, :] - corners[..., 0, :]
 
 
 def _gram(first, second, axis=-1):
