@@ -62,7 +62,7 @@ from exclone_cli import (Outputs, Parser, check_folder_writable, check_output_wr
                          number, run_main)
 from exclone_addon.blender import (character, character_keys, files, mesh_io, preview,  # noqa: E402
                                      workflow)
-from exclone_addon.core import data, reports  # noqa: E402
+from exclone_addon.core import character as core_character, data, reports  # noqa: E402
 from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
 from exclone_addon.core.expression_measures import measure_clone, summary  # noqa: E402
@@ -463,7 +463,8 @@ def run(args):
                                face.head.mesh, landmarks=landmarks,
                                source_landmarks=inputs.source.automatic_landmarks,
                                settings=CloneSettings(), progress=_print_progress(),
-                               face_guide=face.guide, fixed_vertices=face.head.fixed)
+                               face_guide=face.guide, fixed_vertices=face.head.fixed,
+                               shared_vertices=core_character.shared_vertices(inputs.source, face))
     timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
     timings["clone_total"] = time.perf_counter() - clock
     clock = time.perf_counter()

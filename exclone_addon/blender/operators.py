@@ -366,7 +366,7 @@ class EXCLONE_OT_register_faces(_Engine, bpy.types.Operator):
             seconds = time.perf_counter() - started
             self.report({'INFO'}, f"Registered {source.description} onto "
                                   f"'{target.face_object.name}' ({target.face.region()}): "
-                                  f"{fit_error(run.result.quality)} of the target's size, "
+                                  f"{fit_error(run.result.quality, sized=True)}, "
                                   f"{len(run.result.target_landmarks)} {run.landmark_kind} "
                                   "landmarks, " + (f"cached result ({seconds:.1f} s)"
                                                    if run.cached else f"{seconds:.1f} s"))

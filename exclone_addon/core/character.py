@@ -114,6 +114,7 @@ class HeadCut:
     mesh: PolyMesh                # the polygons wholly inside the region, renumbered 0..m-1
     fixed: np.ndarray             # (k,) head vertices on the cut (held still), head numbering
     total: int                    # vertices of the whole mesh
+    whole_polygons: tuple         # the whole mesh's (loop_totals, loop_vertices)
 
     def spread(self, deltas):
         """(E, total, 3) from the head's (E, m, 3): zero outside the head."""
@@ -178,7 +179,8 @@ def whole(part, index, not_found=None):
     placed outside the found head."""
     n = len(part.mesh.vertices)
     return CharacterFace(index, part.name,
-                         HeadCut(np.arange(n), part.mesh, np.zeros(0, dtype=np.int64), n), None,
+                         HeadCut(np.arange(n), part.mesh, np.zeros(0, dtype=np.int64), n,
+                                 (part.mesh.loop_totals, part.mesh.loop_vertices)), None,
                          not_found)
 
 
@@ -231,6 +233,39 @@ def source_head(source, face):
                              description=source.description, head=head)
 
 
+def shared_vertices(source, face):
+    """(m,) for each vertex of the face's head, the vertex of the source (an ExpressionLibrary,
+    its numbering) that is the same vertex of one base mesh, -1 where the source has none; None
+    when the two are not one base mesh. face: the target's CharacterFace. One base mesh: the
+    same number of vertices, and every polygon of the
+    source (cut to a head or not) a polygon of the target over the same vertex ids, in the same
+    order (an ICT-FaceKit head and the bundled library; characters made from one base mesh, as
+    MakeHuman's are; not a file whose exporter split vertices at seams, whose numbering differs).
+    Such a target takes every source triangle's motion on its own triangle, with no registration
+    (cloning.fit_shared)."""
+    if source.own_vertex_count != face.head.total:
+        return None
+    own = source.own_ids(np.arange(len(source.mesh.vertices)))
+    source_polygons = _polygons(source.mesh.loop_totals, own[source.mesh.loop_vertices])
+    if len(source_polygons) < MIN_SHARED_POLYGONS \
+            or not source_polygons <= _polygons(*face.head.whole_polygons):
+        return None
+    in_source = np.full(face.head.total, -1)
+    in_source[own] = np.arange(len(own))
+    return in_source[face.head.vertex_ids]
+
+
+# Polygons a source must have to be taken for the target's base mesh (a handful could match by
+# chance; a face has thousands).
+MIN_SHARED_POLYGONS = 100
+
+
+def _polygons(loop_totals, loop_vertices):
+    """The set of polygons as tuples of vertex ids (in their own order)."""
+    return set(map(tuple, np.split(np.asarray(loop_vertices),
+                                   np.cumsum(loop_totals)[:-1])))
+
+
 def _with_inner_parts(mesh, triangles, region):
     """The head region plus the separate parts of the same mesh (welded: not the pieces of a
     split seam) that lie wholly within its bounding box and outside it (the eyeballs, teeth,
@@ -273,7 +308,7 @@ def head_cut(mesh, region):
     number[ids] = np.arange(len(ids))
     cut = np.intersect1d(ids, loops[~keep])
     head = PolyMesh(mesh.vertices[ids], totals[inside], number[loops[keep]])
-    return HeadCut(ids, head, number[cut], len(mesh.vertices))
+    return HeadCut(ids, head, number[cut], len(mesh.vertices), (totals, loops))
 
 
 def guide(found, vertices):

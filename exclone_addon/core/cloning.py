@@ -16,7 +16,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from . import deformation, followers
-from .correspondence import map_vertices, mapped_triangles, triangle_correspondence
+from .correspondence import (Correspondence, VertexMap, map_vertices, mapped_triangles,
+                             triangle_correspondence)
 from .errors import ExCloneError
 from .landmarks import MIN_PAIRS, automatic_landmarks, checked_pairs
 from .mesh import checked_triangles, triangle_areas, vertex_parts, welded
@@ -399,6 +400,98 @@ def fit_registered(source, target, registered_source, *, settings=None):
         quality=_correspondence_quality(mapped, weights, scale, target_region.diagonal))
 
 
+@limited_threads
+def fit_shared(source, target, shared, *, source_landmarks=None, settings=None,
+               fixed_vertices=None):
+    """A FaceFit of a target made from the source's own base mesh (docs/method.md §7): each
+    target vertex is a vertex of the source, so nothing is registered and each target triangle
+    takes the gradient of its own triangle on the source (an ICT-FaceKit head and the bundled
+    library; two characters made from one base mesh).
+
+    shared: (n_target,) the source vertex (own numbering) each target vertex is, -1 where the
+    source has none (a triangle with such a corner follows without deforming, as an uncovered
+    one). source_landmarks: the source's automatic landmarks (names, ids): those whose vertex
+    the target has become the fit's (the eyelid rims and the measures use them).
+    fixed_vertices: as fit_faces'."""
+    return _fit_shared(_welded_surface(source, "source mesh"), target, shared, source_landmarks,
+                       _checked_settings(settings), fixed_vertices)
+
+
+def _fit_shared(source_weld, target, shared, source_landmarks, settings, fixed_vertices):
+    """fit_shared on the welded source (Welded, whole mesh)."""
+    start = time.perf_counter()
+    target_weld = _welded_surface(target, "target mesh")
+    source_surface, target_region = source_weld.surface, target_weld.surface
+    shared = np.asarray(shared, dtype=np.int64)
+    if shared.shape != (target_weld.own_count(),) \
+            or shared.max(initial=-1) >= source_weld.own_count():
+        raise ExCloneError("the shared vertices do not fit the meshes: one source vertex id "
+                           f"(or -1) per target vertex, below {source_weld.own_count()}")
+    # per welded target vertex, its welded source vertex (-1: none)
+    counterpart = np.full(len(target_region.vertices), -1)
+    has = shared >= 0
+    counterpart[target_weld.index[has]] = source_weld.index[shared[has]]
+    vertex_map = _shared_vertex_map(counterpart, source_surface)
+    moved = np.flatnonzero(vertex_map.valid)
+    at = source_surface.vertices[counterpart[moved]]
+    rotation, scale, shift = similarity_transform(at, target_region.vertices[moved])
+    aligned = source_surface.vertices @ rotation.T * scale + shift
+    registered = aligned.copy()          # the source vertices the target has are where it has them
+    registered[counterpart[moved]] = target_region.vertices[moved]
+    mapped = vertex_map.valid[target_region.triangles].all(axis=1)
+    if not mapped.any():
+        raise ExCloneError("the target shares no triangle with the source")
+    none = np.zeros(0, dtype=np.int64)
+    pairs = Correspondence(none, none, np.zeros(0)).matrix(len(target_region.triangles),
+                                                          len(source_surface.triangles))
+    names, source_ids, target_ids = _shared_landmarks(source_landmarks, shared)
+    return FaceFit(
+        source=source_surface, target=target, welded_target=target_weld, source_weld=source_weld,
+        target_region=target_region, source_region=source_surface.triangles,
+        rotation=rotation, scale=scale, aligned_source=aligned,
+        vertex_map=vertex_map, mapped=mapped, pairs=pairs, weights=mapped.astype(np.float64),
+        formulation=settings.formulation, source_landmarks=source_ids,
+        target_landmarks=target_ids, landmark_names=names,
+        registered_source=registered[source_weld.index],
+        timings={"correspondence": time.perf_counter() - start},
+        quality={"shared_vertices": int(has.sum()), "landmark_count": len(names),
+                 **_correspondence_quality(mapped, mapped.astype(np.float64), scale,
+                                           target_region.diagonal)},
+        fixed_vertices=_welded_ids(target_weld, fixed_vertices))
+
+
+def _shared_vertex_map(counterpart, source):
+    """correspondence.VertexMap putting each target vertex exactly on its source vertex
+    (counterpart, welded ids; -1: none): at a corner of a source triangle holding it."""
+    n = len(counterpart)
+    triangle, corner = np.full(n, -1), np.zeros(n, dtype=np.int64)
+    holder = np.full(len(source.vertices), -1)
+    holder_corner = np.zeros(len(source.vertices), dtype=np.int64)
+    for k in range(3):            # any triangle holding the vertex will do: its gradient is read
+        holder[source.triangles[:, k]] = np.arange(len(source.triangles))   # at the images
+        holder_corner[source.triangles[:, k]] = k
+    valid = counterpart >= 0
+    valid[valid] = holder[counterpart[valid]] >= 0
+    triangle[valid] = holder[counterpart[valid]]
+    corner[valid] = holder_corner[counterpart[valid]]
+    bary = np.zeros((n, 3))
+    bary[np.flatnonzero(valid), corner[valid]] = 1.0
+    return VertexMap(triangle, bary, valid)
+
+
+def _shared_landmarks(source_landmarks, shared):
+    """(names, source ids, target ids) of the source's landmarks whose vertex the target has."""
+    if source_landmarks is None:
+        return [], np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64)
+    names, ids = list(source_landmarks[0]), np.asarray(source_landmarks[1], dtype=np.int64)
+    first = {}
+    for target_id, source_id in enumerate(shared.tolist()):
+        first.setdefault(source_id, target_id)
+    kept = [k for k, i in enumerate(ids.tolist()) if i in first]
+    return ([names[k] for k in kept], ids[kept],
+            np.array([first[int(ids[k])] for k in kept], dtype=np.int64))
+
+
 # ------------------------------------------------------------------------------ transfer
 
 def _checked_deltas(source_deltas, names, source_weld):
@@ -494,18 +587,25 @@ def _in_own_numbering(result, index):
 @limited_threads
 def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
                       source_landmarks=None, settings=None, progress=None, face_guide=None,
-                      fixed_vertices=None):
-    """Clone every source expression onto the target: fit_faces, then transfer_expressions.
+                      fixed_vertices=None, shared_vertices=None):
+    """Clone every source expression onto the target: fit_faces (fit_shared when
+    shared_vertices are given), then transfer_expressions.
 
     source, target: PolyMesh. source_deltas: (E, n_source, 3). names: E strings.
     landmarks, source_landmarks, progress, face_guide, fixed_vertices: as fit_faces.
+    shared_vertices: as fit_shared's `shared` (core.character.shared_vertices), for a target
+    made from the source's base mesh; ignored when landmarks are given.
     Raises ExCloneError with a user-facing message on bad input.
     """
     settings = _checked_settings(settings)
     source_weld = _welded_surface(source, "source mesh")
     _checked_deltas(source_deltas, names, source_weld)   # before the long part
-    fit = _fit(source_weld, target, landmarks, source_landmarks, settings,
-               _progress_span(progress, 0.0, 0.8), face_guide, fixed_vertices)
+    if shared_vertices is not None and landmarks is None:
+        fit = _fit_shared(source_weld, target, shared_vertices, source_landmarks, settings,
+                          fixed_vertices)
+    else:
+        fit = _fit(source_weld, target, landmarks, source_landmarks, settings,
+                   _progress_span(progress, 0.0, 0.8), face_guide, fixed_vertices)
     if progress:
         progress(0.8, "transfer")
     result = transfer_expressions(fit, source_deltas, names)

@@ -7,10 +7,16 @@ def listed(names, most=4):
     return ", ".join(names[:most]) + (", ..." if len(names) > most else "")
 
 
-def fit_error(quality):
-    """"fit error 0.2%" from a clone's quality dict, or "" if it has no registration error."""
+def fit_error(quality, sized=False):
+    """"fit error 0.2%" from a clone's quality dict ("... of the target's size" if sized); for a
+    target made from the source's base mesh (cloning.fit_shared), that it is; "" if neither."""
+    shared = quality.get("shared_vertices")
+    if shared is not None:
+        return f"the source's own base mesh ({shared:,} vertices matched, no registration)"
     fit = quality.get("registration_mean_distance_rel")
-    return "" if fit is None else f"fit error {100 * fit:.2g}%"
+    if fit is None:
+        return ""
+    return f"fit error {100 * fit:.2g}%" + (" of the target's size" if sized else "")
 
 
 def summary(added, replaced, skipped, seconds, quality):
