@@ -19,10 +19,12 @@ from blender_tests.helpers.takes import (largest_false_weight, pose_errors, rend
 OTHER_IDENTITY = 7
 
 # Measured with the tracker model learnt from FaceMesh's points on other ICT identities
-# (scripts/make_tracker_model.py; mean correlation over the 17 driven shapes, their mean absolute
-# error): bundled head 0.325, 0.056; identity 7: 0.365, 0.059. (With the model of the located
-# points it replaced, on the same frames: 0.320, 0.067; 0.343, 0.067.)
-MEASURED_WEIGHTS = {"moving": (0.29, 0.062), "other_identity": (0.33, 0.065)}
+# (scripts/make_tracker_model.py) and the material points beside them (core.material_points;
+# mean correlation over the 17 driven shapes, their mean absolute error): bundled head 0.459,
+# 0.057; identity 7: 0.516, 0.058; the head still: 0.636, 0.044. (FaceMesh's points alone:
+# 0.325, 0.056; 0.365, 0.059; 0.517, 0.046. With the model of the located points the learnt one
+# replaced: 0.320, 0.067; 0.343, 0.067.)
+MEASURED_WEIGHTS = {"moving": (0.42, 0.062), "other_identity": (0.47, 0.065), "still": (0.59, 0.05)}
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll):
 # moving 1.57, 3.24, (1.00, 1.02, 1.01); turning 1.45, 2.90, (0.99, 1.01, 1.03);
 # identity 7: 1.53, 4.34, (1.05, 1.02, 1.02). (The located points' model with FaceMesh's depth,
@@ -35,6 +37,12 @@ SLOPE_RANGE = (0.93, 1.09)
 @pytest.fixture(scope="module")
 def moving():
     take = rendered_take("moving")
+    return take, track_rendered(take)
+
+
+@pytest.fixture(scope="module")
+def still():
+    take = rendered_take("still")
     return take, track_rendered(take)
 
 
@@ -74,18 +82,21 @@ def test_head_rotation_as_measured(take_name, request):
     assert np.all((slopes >= low) & (slopes <= high)), slopes
 
 
-@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.325, most shapes below 0.7 "
-                                       "(brows and nose 0.0-0.4, jaw and mouth 0.5-0.9), MAE "
-                                       "0.056 (bundled head, head moving up to 25 deg)")
+@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.459, most shapes below 0.7 "
+                                       "(frowns, browOuterUp_L, sneers -0.1-0.3, cheekPuff 0.34, "
+                                       "the jaw, funnel and smile_L 0.88-0.96), MAE 0.057 (bundled "
+                                       "head, head moving up to 25 deg): the material points drift "
+                                       "as the head turns and are pulled back to FaceMesh's fit")
 def test_weights_reach_the_target(moving):
     correlations, mae, text = _weight_figures(*moving)
     assert correlations.mean() >= 0.85 and correlations.min() >= 0.7 and mae <= 0.08, text
 
 
 # Measured on the turning take (a neutral face, its eyes fixed in the head, turning up to 30 deg):
-# the largest weight of any key 0.81 (browDown_L), of the eyes' keys 0.70 (eyeSquint_R; the
-# gaze keys eyeLookOut_L and eyeLookIn_R 0.51, eyeBlink_L 0.31): checked with a margin.
-MEASURED_FALSE_WEIGHT = {"": 0.9, "eye": 0.8}
+# the largest weight of any key 0.76 (browDown_L; FaceMesh's points alone: 0.81), of the eyes'
+# keys 0.70 (eyeSquint_R; the gaze keys eyeLookOut_L and eyeLookIn_R 0.51, eyeBlink_L 0.31):
+# checked with a margin.
+MEASURED_FALSE_WEIGHT = {"": 0.85, "eye": 0.8}
 
 
 @pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT), ids=["all keys", "eye keys"])
@@ -95,7 +106,7 @@ def test_a_turning_neutral_face_as_measured(turning, keys):
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
-                                       "weight 0.81 (browDown_L), the eyes' keys 0.70 "
+                                       "weight 0.76 (browDown_L), the eyes' keys 0.70 "
                                        "(eyeSquint_R; gaze 0.51); with the true points' "
                                        "projections 0.04: FaceMesh's points slide as the head "
                                        "turns, and the learnt slide leaves 1.4 px median (a slide "

@@ -6,20 +6,24 @@ several faces in view the take follows one: the largest at first, then the same 
 found where it was last seen), never a bystander while it is briefly out of view; FaceMesh's 468 points and the iris model's eye points
 (docs/method.md §10); the tracker's 3D
 shape model fitted to them with head pose, warm-started from the previous frame, the actor's
-neutral calibrated over the first frames with a face (core.tracking, §11); One Euro filters on
-pose, shape and landmarks; then, with an avatar, its shape-key weights (core.retarget, §12), the
-eyes' lids and gaze (core.eyes) as further targets of the same bounded solve.
+neutral calibrated over the first frames with a face (core.tracking, §11); after calibration
+the shape parameters refitted with the material points, image points on texture tracked by
+optical flow (core.material_points, §11); One Euro filters on pose, shape and landmarks; then,
+with an avatar, its shape-key weights (core.retarget, §12), the eyes' lids and gaze (core.eyes)
+as further targets of the same bounded solve.
 """
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import data, eyes, face_models, threads
 from .eyes import EyeGeometry
 from .errors import ExCloneError
+from .material_points import MaterialPoints
 from .retarget import WeightSolver, map_blendshapes, refine_take
 from .tracker_model import load_tracker_model
 from .tracking import Camera, OneEuroFilter, RotationFilter, ShapeFitter, calibrate_neutral
@@ -39,9 +43,10 @@ FIT_TOLERANCE_PX = 0.05
 FOLLOW_GRACE_S = 1.0
 SAME_WIDTH_RATIO = 1.4
 # The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs):
-# "eyes" reads the iris model's points and brings them frontal. The iris model's network runs on
-# its own thread beside "fit": the stages add up to more than the step.
-STAGES = ("detect", "landmarks", "iris", "fit", "eyes", "weights")
+# "eyes" reads the iris model's points and brings them frontal, "material" tracks the material
+# points and fits them beside FaceMesh's. The iris model's network runs on its own thread beside
+# "fit": the stages add up to more than the step.
+STAGES = ("detect", "landmarks", "iris", "fit", "material", "eyes", "weights")
 
 
 class LandmarkFilter:
@@ -139,6 +144,8 @@ class FaceTrackingSession:
         self.eye_neutral = None       # the actor's neutral eyes, frontal (eyes.EyeReading)
         self._eye_geometry = None
         self._eye_targets = None
+        self._material = None         # the take's material points (after calibration, not stills)
+        self._gray = None             # the frame being tracked, grey (None: landmarks given)
         self.take = RecordedTake()
         self._frame_size = None       # (width, height) of the take's first frame
         self._roi = None
@@ -155,6 +162,12 @@ class FaceTrackingSession:
     @property
     def calibrated(self):
         return self.neutral is not None
+
+    @property
+    def material_points(self):
+        """The take's material points (core.material_points; None before calibration, for still
+        images and for given landmarks)."""
+        return self._material
 
     def calibrate(self, frames=None):
         """(Re)start neutral calibration over the next `frames` frames with a face (default
@@ -260,8 +273,16 @@ class FaceTrackingSession:
     def _step(self, image, timestamp, name):
         self._use_image_size(image.shape[1], image.shape[0], name)
         stage_ms = dict.fromkeys(STAGES, 0.0)
+        self._gray = None if self.still_images else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        # the material points' flow needs only the frames: on the iris model's thread while
+        # FaceMesh runs on this one
+        flow_run = None
+        if self._material is not None and self._gray is not None:
+            flow_run = self._iris_thread.submit(self._timed_flow, self._gray)
         points, detected = self._find_face(image, timestamp, stage_ms)
         if points is None:
+            if flow_run is not None:
+                wait([flow_run])
             return self._lost(stage_ms)
         start = time.perf_counter()
         iris_run = self._iris_thread.submit(self._timed_iris, self.iris.input_blob(image, points))
@@ -270,9 +291,16 @@ class FaceTrackingSession:
             self._followed_box, self._seen_at = face_models.landmarks_box(points), timestamp
             roi = face_models.roi_from_landmarks(points)
             self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
-            return self._track(points, timestamp, stage_ms, restart=detected, iris_run=iris_run)
+            return self._track(points, timestamp, stage_ms, restart=detected, iris_run=iris_run,
+                               flow_run=flow_run)
         finally:
             wait([iris_run])        # the network is free again when the step returns
+
+    def _timed_flow(self, gray):
+        """(The material points tracked into this frame, the milliseconds): on the iris thread."""
+        start = time.perf_counter()
+        tracked = self._material.track(gray)
+        return tracked, 1000 * (time.perf_counter() - start)
 
     def _timed_iris(self, blob):
         """(The iris network's outputs, its milliseconds): on the iris thread."""
@@ -296,6 +324,7 @@ class FaceTrackingSession:
             image_size = (2 * self.camera.cx, 2 * self.camera.cy)
         self._use_image_size(*image_size, name="the landmarks' image")
         stage_ms = dict.fromkeys(STAGES, 0.0)
+        self._gray = None
         return self._track(points, timestamp, stage_ms, restart=self._previous_fit is None,
                            depth=depth)
 
@@ -311,8 +340,10 @@ class FaceTrackingSession:
                            stage_ms=stage_ms, status=status)
 
     # -- shape fit and calibration (docs/method.md §11), weights (§12)
-    def _track(self, points, timestamp, stage_ms, restart, iris_run=None, depth=True):
-        """iris_run: a Future of _timed_iris (the iris network running beside the fit), or None."""
+    def _track(self, points, timestamp, stage_ms, restart, iris_run=None, depth=True,
+               flow_run=None):
+        """iris_run: a Future of _timed_iris (the iris network running beside the fit), or None;
+        flow_run: one of _timed_flow (the material points tracked into this frame), or None."""
         # the fit reads the points' relative depth (FaceMesh's z) too, when they have one
         observed = points if depth else points[:, :2]
         if restart or self.still_images:
@@ -323,9 +354,18 @@ class FaceTrackingSession:
         fit = self._fitter.fit(observed, previous=self._previous_fit)
         self._previous_fit = fit
         stage_ms["fit"] = 1000 * (time.perf_counter() - start)
+        shown = fit       # its shape parameters from the material points' fit when there is one
+        if self._material is not None and not self._pending:
+            tracked = None
+            if flow_run is not None:
+                tracked, stage_ms["material"] = flow_run.result()
+            start = time.perf_counter()
+            # after a detection the last frame's points are not this face's
+            shown = self._material.fit(None if restart else tracked, fit)
+            stage_ms["material"] += 1000 * (time.perf_counter() - start)
         # the filters need only the fit: run while the iris model may still be running (on the
         # last calibration frame the calibration replaces the fit and restarts them: after it)
-        pose = None if self._pending else self._shown_pose(fit, points, timestamp)
+        pose = None if self._pending else self._shown_pose(shown, points, timestamp)
         eye_points = None
         if iris_run is not None:
             outputs, run_ms = iris_run.result()
@@ -403,6 +443,7 @@ class FaceTrackingSession:
         self._fitter = fitter
         self.neutral_rotation = Rotation.concatenate([f.rotation for f in fits]).mean()
         self._previous_fit = fits[-1]
+        self._material = None if self._gray is None else MaterialPoints(self._gray, fits[-1], fitter)
         self._calibrate_eyes(fits)
         self._pending = 0
         self._calibration_points = []

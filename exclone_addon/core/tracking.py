@@ -212,6 +212,9 @@ class FitResult:
     iterations: int
     scale_px: float           # robust residual scale (pixels)
     pose_offset: np.ndarray = None   # (n, 3) the points' slide at this pose (model space), if modelled
+    # (K, K) the shape parameters' block of the last step's normal matrix (prior included): what
+    # further observations of the shape add to at this pose (core.material_points)
+    shape_normal: np.ndarray = None
 
     def camera_points(self):
         """(n, 3) the fitted points in camera space (with their slide)."""
@@ -324,7 +327,7 @@ class ShapeFitter:
             jac, depth_jac = self._jacobians(y, t, rotation, None if slide is None else slide[1],
                                              with_depth=depth is not None)
             depth_rows = None if depth is None else self._depth_rows(y, t, depth_jac, depth, robust)
-            step = self._gauss_newton_step(jac, diff, robust, b, damping, depth_rows)
+            step, normal = self._gauss_newton_step(jac, diff, robust, b, damping, depth_rows)
             rotation = Rotation.from_rotvec(step[:3]) * rotation
             t = t + step[3:6]
             b = b + step[6:]
@@ -338,7 +341,8 @@ class ShapeFitter:
         placed = shape if slide is None else shape + slide
         proj = self.camera.project(rotation.apply(placed) + t)
         dist = np.linalg.norm(proj - p, axis=1)
-        return FitResult(rotation, t, b, shape, proj, dist, robust, iteration, scale_px, slide)
+        return FitResult(rotation, t, b, shape, proj, dist, robust, iteration, scale_px, slide,
+                         normal[6:, 6:])
 
     def _checked_points(self, points2d, weights):
         """(points (n, 2), confidences, depths (n,) or None): non-finite points get confidence 0
@@ -408,7 +412,8 @@ class ShapeFitter:
         return jac, residuals - share @ residuals, w
 
     def _gauss_newton_step(self, jac, diff, robust, params, damping, depth_rows=None):
-        """The damped, prior-regularised weighted Gauss-Newton step in [omega, t, b]."""
+        """(The damped, prior-regularised weighted Gauss-Newton step in [omega, t, b], its normal
+        matrix)."""
         # J^T W J as (W^1/2 J)^T (W^1/2 J): one symmetric product
         root = np.sqrt(np.repeat(robust, 2))
         weighted = jac * root[:, None]
@@ -420,7 +425,7 @@ class ShapeFitter:
             g += (depth_jac.T * depth_w) @ depth_res
         h[np.diag_indices_from(h)] += self._prior + damping * np.diag(h)
         g[6:] += self._prior[6:] * params
-        return -cho_solve(cho_factor(h, check_finite=False), g, check_finite=False)
+        return -cho_solve(cho_factor(h, check_finite=False), g, check_finite=False), h
 
 
 def calibrate_neutral(fitter, frames, rounds=5, stiffness=1.0):

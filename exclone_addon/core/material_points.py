@@ -1,0 +1,130 @@
+"""Material points: image points tracked by optical flow beside FaceMesh's points (docs/method.md
+§11).
+
+FaceMesh's points are a regression to a face prior: on rendered ICT heads with the head still
+they follow the brows, frowns, pucker and cheekPuff by 0.2-0.5 of the located motion. The image
+itself moves with the face: where it has texture (painted brows, lip and lid edges, nostrils),
+pyramidal Lucas-Kanade follows those shapes at 0.75-1.1 of it. At calibration the fit's own
+points that lie on texture and face the camera become material points, located in the model where
+the fit put them (the calibrated neutral plus its slide at that frame's pose, and no slide
+after). Each frame tracks them from the previous frame (forward-backward checked; on a thread of
+its own while FaceMesh runs) and refits FaceMesh's fit's shape parameters to them too, at its
+pose: those parameters drive the weights.
+
+Tracked from frame to frame they drift as the head turns (on the rendered takes the flow reads
+about 0.9 of a frame's motion where the light stays with the camera: 3-4 px off after a second
+of turning, 1.5 px even against the neutral frame warped by the true motion), so after each
+frame every point is pulled a share of the way to where FaceMesh's fit puts it: FaceMesh holds
+what stays, the flow adds what changes quickly. The head pose stays FaceMesh's fit's (with the
+material points in the pose the rotation's error grew from 1.6 to 1.8-2.7 deg median).
+"""
+from dataclasses import replace
+
+import cv2
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from .tracking import tukey_weights
+
+# A point is on texture where the image's smaller structure-tensor eigenvalue over 5x5 pixels
+# (cv2.cornerMinEigenVal, Sobel 3) exceeds this: about 140 of the 468 points on a 640x480 render.
+MIN_TEXTURE = 1e-4
+# At most this many points (the most textured): the flow's time grows with them (a photograph's
+# face has texture at 360 of the 468; 150 points take about 1 ms on 2 cores).
+MAX_POINTS = 150
+# Points the fit sees at a slant (facing cosine below this) are not tracked: their window mixes
+# the face and what lies behind its silhouette.
+MIN_FACING = 0.5
+# A tracked point counts only when tracking it back lands within this of where it started.
+FORWARD_BACKWARD_PX = 0.7
+# After each frame each point moves this share of the way to FaceMesh's fit (of 0.1, 0.2, 0.3 on
+# the rendered takes: 0.2 best kept a turning neutral face at rest).
+PULL = 0.2
+# A material point's weight in the fit against one of FaceMesh's (their noise is a fraction of
+# FaceMesh's; fewer of them).
+WEIGHT = 20.0
+# The frames are cropped to the points' box grown by this before the flow (a face moves a few
+# pixels a frame; the flow's 11-pixel window at its coarsest level, a quarter of the size, spans
+# about 20).
+CROP_MARGIN_PX = 32
+LUCAS_KANADE = dict(winSize=(11, 11), maxLevel=2,
+                    criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+
+
+class MaterialPoints:
+    """The material points of one calibrated take and the shape fit that reads them.
+
+    gray: the calibration's last frame (8-bit); fit: its FitResult by `fitter` (the calibrated
+    FaceMesh fitter)."""
+
+    def __init__(self, gray, fit, fitter):
+        height, width = gray.shape
+        texture = cv2.cornerMinEigenVal(gray, 5, 3)
+        pixels = np.clip(np.round(fit.points2d).astype(int), 0, [width - 1, height - 1])
+        model = fitter.model
+        facing = model.facing(fit.shape, fit.rotation, fit.translation)
+        strength = texture[pixels[:, 1], pixels[:, 0]]
+        chosen = strength > MIN_TEXTURE
+        if facing is not None:
+            chosen &= facing > MIN_FACING
+        # the FaceMesh point each one started at: the most textured MAX_POINTS
+        self.indices = np.sort(np.flatnonzero(chosen)[np.argsort(-strength[chosen])[:MAX_POINTS]])
+        slide = model.pose_offset(fit.rotation, fit.translation)
+        # located where the fit put them, slide included: the image point stays on the face
+        self.located = fit.shape[self.indices] + (0.0 if slide is None else slide[self.indices])
+        self._model = model
+        self._camera = fitter.camera
+        self._min_scale_px = fitter.min_scale_px
+        self._point_modes = np.ascontiguousarray(model.modes.transpose(1, 2, 0))   # (n, 3, K)
+        self._gray = gray
+        self.points = fit.points2d[self.indices].astype(np.float32)
+
+    def track(self, gray):
+        """(m, 2) the material points in this frame (NaN where not found or not trusted)."""
+        tracked = np.full((len(self.indices), 2), np.nan)
+        if self._gray is not None:
+            # both frames cropped about the points: the flow's pyramids cover the face only
+            height, width = gray.shape
+            low = np.maximum(np.floor(self.points.min(axis=0)) - CROP_MARGIN_PX, 0).astype(int)
+            high = np.minimum(np.ceil(self.points.max(axis=0)) + CROP_MARGIN_PX,
+                              [width, height]).astype(int)
+            crop = np.s_[low[1]:high[1], low[0]:high[0]]
+            before, now = self._gray[crop], gray[crop]
+            start = self.points - low.astype(np.float32)
+            ahead, found, _ = cv2.calcOpticalFlowPyrLK(before, now, start, None, **LUCAS_KANADE)
+            back, found_back, _ = cv2.calcOpticalFlowPyrLK(now, before, ahead, None, **LUCAS_KANADE)
+            valid = ((found[:, 0] == 1) & (found_back[:, 0] == 1)
+                     & (np.linalg.norm(back - start, axis=1) < FORWARD_BACKWARD_PX))
+            tracked[valid] = ahead[valid] + low
+            self.points = np.where(valid[:, None], tracked, self.points).astype(np.float32)
+        self._gray = gray
+        return tracked
+
+    def fit(self, tracked, fit):
+        """FaceMesh's `fit` with its shape parameters refitted to the material points `tracked`
+        (m, 2; NaN: not seen; None: none) too, at its pose: one Gauss-Newton step from the fit's
+        optimum, its own normal matrix plus the material points' (the projection is nearly
+        linear in the parameters at a fixed pose; FaceMesh's gradient there is nought). The
+        points then move PULL of the way to where `fit` puts them."""
+        rotation, matrix = fit.rotation, fit.rotation.as_matrix()
+        modes = self._point_modes[self.indices]
+        material = self.located + np.einsum("nik,k->ni", modes, fit.params)
+        anchor = self._camera.project(rotation.apply(material) + fit.translation)
+        if tracked is None:
+            tracked = np.full(anchor.shape, np.nan)
+        valid = np.all(np.isfinite(tracked), axis=1)
+        params = fit.params
+        if valid.any():
+            camera_points = rotation.apply(material[valid]) + fit.translation
+            jac = ((self._camera.jacobian(camera_points) @ matrix) @ modes[valid]).reshape(-1, len(params))
+            residuals = tracked[valid] - anchor[valid]
+            distance = np.linalg.norm(residuals, axis=1)
+            scale = max(1.4826 * np.median(distance), self._min_scale_px)
+            weights = WEIGHT * tukey_weights(distance, 4.685 * scale)
+            normal = fit.shape_normal + (jac.T * np.repeat(weights, 2)) @ jac
+            gradient = jac.T @ (residuals * weights[:, None]).reshape(-1)
+            params = params + cho_solve(cho_factor(normal, check_finite=False), gradient,
+                                        check_finite=False)
+        self.points = np.where(valid[:, None], tracked + PULL * (anchor - tracked),
+                                anchor).astype(np.float32)
+        return replace(fit, params=params, shape=self._model.shape(params))
