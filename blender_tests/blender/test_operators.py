@@ -392,6 +392,28 @@ def test_a_mesh_with_shape_keys_is_a_source(head, library, capfd):
     assert 0.45 < lip_parting(head, cloned["jawOpen"]) < 0.9
 
 
+def test_a_source_of_the_targets_base_mesh_is_cloned_vertex_by_vertex(head, capfd):
+    """A source object and a target object of one base mesh (here the demo head, the target
+    moved, turned and scaled): Register and Clone say so, and the keys are the source's motion,
+    turned and scaled with the target."""
+    lift = np.zeros_like(head.vertices)
+    lift[:, 1] = 0.02 * np.clip(head.vertices[:, 1] - np.median(head.vertices[:, 1]), 0, None)
+    source = add_object("source", head, active=False)
+    mesh_io.write_shape_keys(source, ["lift"], lift[None])
+    target = add_object("target", head)
+    target.scale = (2.0, 2.0, 2.0)
+    target.rotation_euler = (0.3, 0.0, 0.5)
+    source.select_set(True)
+    assert bpy.ops.exclone.register_faces(preview=False) == {'FINISHED'}
+    message = reports(capfd)[-1]
+    assert "the source's own base mesh (4,244 vertices matched, no registration)" in message, \
+        message
+    assert bpy.ops.exclone.clone_expressions() == {'FINISHED'}
+    assert "the source's own base mesh" in reports(capfd)[-1]
+    # keys are in the target's own coordinates: the same motion as the source's own keys
+    assert np.abs(keys(target)["lift"] - lift).max() < 1e-3 * np.abs(lift).max()
+
+
 def test_generate_arkit_shapes_gives_apples_names(head, capfd):
     obj = add_object("head", head)
     assert bpy.ops.exclone.generate_arkit_shapes() == {'FINISHED'}
