@@ -84,6 +84,37 @@ def test_only_a_mesh_of_the_same_polygons_is_taken_for_the_source(library):
         library, character.find([character.Part("renumbered", renumbered)])) is None
 
 
+def test_parts_added_after_the_base_meshs_vertices_keep_still(library):
+    """The library's mesh with a part of the user's own appended after its vertices (a band
+    inside the skull, within the head's bounds): still one base mesh; the band, which the
+    source does not have, keeps still, and the blink is the library's own."""
+    n = len(library.mesh.vertices)
+    ring = np.linspace(0, 2 * np.pi, 24, endpoint=False)
+    top = library.mesh.vertices[:, 1].max()
+    band = np.concatenate([np.stack([5 * np.cos(ring), np.full(24, top - h), 5 * np.sin(ring)],
+                                    axis=1) for h in (2.0, 4.0)])
+    quads = np.array([[n + k, n + (k + 1) % 24, n + 24 + (k + 1) % 24, n + 24 + k]
+                      for k in range(24)])
+    mesh = PolyMesh(np.concatenate([library.mesh.vertices, band]),
+                    np.concatenate([library.mesh.loop_totals, np.full(24, 4)]),
+                    np.concatenate([library.mesh.loop_vertices, quads.ravel()]))
+    face = character.find([character.Part("hatted", mesh)])
+    shared = character.shared_vertices(library, face)
+    assert shared is not None
+    whole = np.full(len(mesh.vertices), -2)
+    whole[face.head.vertex_ids] = shared
+    assert np.all(whole[n:] == -1)        # the band is in the head, and no source vertex
+    source = library.subset(["eyeBlink_L"])
+    result = clone_expressions(source.mesh, source.deltas, source.names, face.head.mesh,
+                               source_landmarks=source.automatic_landmarks,
+                               face_guide=face.guide, fixed_vertices=face.head.fixed,
+                               shared_vertices=shared)
+    moved = face.head.spread(face.to_world(result.deltas))[0]
+    peak = np.linalg.norm(source.deltas[0], axis=1).max()
+    assert np.linalg.norm(moved[n:], axis=1).max() < 1e-9 * peak
+    assert np.linalg.norm(moved[:n] - source.deltas[0], axis=1).max() < 1e-3 * peak
+
+
 def test_the_library_onto_its_own_mesh_moves_every_part_as_itself(library):
     errors = _errors(library, library.mesh.vertices)
     # a blink moves nothing the head's cut holds: as itself (measured 1e-4 of its peak at

@@ -236,14 +236,15 @@ def source_head(source, face):
 def shared_vertices(source, face):
     """(m,) for each vertex of the face's head, the vertex of the source (an ExpressionLibrary,
     its numbering) that is the same vertex of one base mesh, -1 where the source has none; None
-    when the two are not one base mesh. face: the target's CharacterFace. One base mesh: the
-    same number of vertices, and every polygon of the
-    source (cut to a head or not) a polygon of the target over the same vertex ids, in the same
-    order (an ICT-FaceKit head and the bundled library; characters made from one base mesh, as
-    MakeHuman's are; not a file whose exporter split vertices at seams, whose numbering differs).
+    when the two are not one base mesh. face: the target's CharacterFace. One base mesh: at
+    least the source's vertices, and every polygon of the source (cut to a head or not) a polygon
+    of the target over the same vertex ids, in the same order (an ICT-FaceKit head and the
+    bundled library, also with parts added after its vertices; characters made from one base
+    mesh, as MakeHuman's are; not a file whose exporter split vertices at seams, whose numbering
+    differs).
     Such a target takes every source triangle's motion on its own triangle, with no registration
     (cloning.fit_shared)."""
-    if source.own_vertex_count != face.head.total:
+    if source.own_vertex_count > face.head.total:
         return None
     own = source.own_ids(np.arange(len(source.mesh.vertices)))
     source_polygons = _polygons(source.mesh.loop_totals, own[source.mesh.loop_vertices])
