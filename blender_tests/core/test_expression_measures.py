@@ -217,6 +217,28 @@ def test_a_coarse_lid_row_keeps_its_arch_and_drops_the_skin_above_it():
     assert em._visible_edge(np.arange(6), opening, mirrored, -1).tolist() == [0, 1, 2, 3, 4]
 
 
+def test_a_coarse_lid_row_drops_the_skin_beside_the_edge_as_seen():
+    # a coarse lower lid (rim vertices 0.25 stations apart; the edge as seen runs straight between
+    # them, one mesh edge each) with, beside the rim vertex at 0.6, a vertex of the skin 0.06 eye
+    # widths below that edge (a decimated head's edge triangle's nearest corner: within STANDS_OFF
+    # of its neighbours' line, so the margin row keeps it), and the outer corner's vertex beyond
+    # the stations seen (kept)
+    frame = SimpleNamespace(up=np.array([0.0, 1.0, 0.0]), forward=np.array([0.0, 0.0, 1.0]))
+    opening = em._Opening(np.zeros(3), np.array([1.0, 0.0, 0.0]), frame)
+    stations = np.array([0.1, 0.35, 0.6, 0.85])
+    rim = np.stack([stations, -0.8 * stations * (1 - stations), np.zeros(4)], axis=1)
+    seen = np.linspace(0.05, 0.95, 200)
+    edge = np.column_stack([seen, np.interp(seen, stations, rim[:, 1])])
+    skin = [0.68, np.interp(0.68, stations, rim[:, 1]) - 0.06, 0.0]
+    vertices = np.vstack([rim, skin, [1.0, 0.0, 0.0]])
+    margin = em._visible_edge(np.arange(6), opening, vertices, -1)
+    assert margin.tolist() == [0, 1, 2, 3, 4, 5]
+    assert em._on_seen_edge(margin, opening, vertices, -1, edge).tolist() == [0, 1, 2, 3, 5]
+    # the same row as an upper lid (mirrored)
+    mirrored, mirrored_edge = vertices * [1.0, -1.0, 1.0], edge * [1.0, -1.0]
+    assert em._on_seen_edge(margin, opening, mirrored, 1, mirrored_edge).tolist() == [0, 1, 2, 3, 5]
+
+
 @pytest.mark.parametrize("fraction", [1.0, 0.5])
 def test_demo_head_upper_lid_moved_down_by_its_middle_open_height(fraction):
     vertices, triangles, names, ids = demo_head_fit_inputs()

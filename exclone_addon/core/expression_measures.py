@@ -57,6 +57,14 @@ EDGE_WINDOW = 0.05
 # 0.5: 0.099-0.187). The shared characters' and the demo head's rows, whose lids arch between
 # their vertices, keep within 0.034.
 STANDS_OFF = 0.09
+# A margin vertex standing further than this (x the eye's width) beyond the lid's edge as seen from
+# the front (away from the opening, at its station) is skin beside the rim: on a coarse mesh the
+# edge between two sparse rim vertices is one straight mesh edge and the skin vertex of an edge
+# triangle lies off it, where its row's neighbours' line (STANDS_OFF) may not tell it from the
+# lid's arch (the shared man and old woman through Decimate collapse 0.5: 0.057-0.081). The
+# measures read the rows without it; the rims pull it with the rim (core.rims). Every undecimated
+# shared character and variant keeps within 0.021, the demo head and the library within 0.002.
+OFF_EDGE = 0.04
 # The lids are looked for within this far of the corners' line, x the corners' distance.
 EYE_REACH = 0.35
 # An edge's image on the source shorter than this share of the edge has collapsed (both ends on
@@ -157,18 +165,20 @@ def _edge_pixel(depth, heights, width):
 
 
 def _seen_margin(vertices, triangles, opening):
-    """(upper ids, lower ids, how) of the lid margins as seen from the front: in every pixel
-    column between the corners, going up (down) from the corners' line within EYE_REACH x the
-    width, the vertex nearest the lid's edge (_edge_pixel) where that edge is on the front (not a
-    wall deep in a socket seen through the opening); (None, None, why) without two of each."""
+    """(upper ids, lower ids, (upper edge, lower edge), how) of the lid margins as seen from the
+    front: in every pixel column between the corners, going up (down) from the corners' line
+    within EYE_REACH x the width, the vertex nearest the lid's edge (_edge_pixel) where that edge
+    is on the front (not a wall deep in a socket seen through the opening); each edge (k, 2) the
+    columns' stations and the edge's heights there, by station. (None, None, None, why) without
+    two of each."""
     camera, depth, points, triangle = _eye_view(vertices, triangles, opening)
     pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
     lines = camera.ray_origins(pixels.reshape(-1, 2))
     stations = opening.station(lines[:VIEW_PIXELS])          # the first row: one per column
     heights = opening.height(lines).reshape(VIEW_PIXELS, VIEW_PIXELS)
-    found = ([], [])
+    found, edges = ([], []), ([], [])
     for column in np.flatnonzero((stations > 0.05) & (stations < 0.95)):
-        for sign, row in ((1, found[0]), (-1, found[1])):
+        for sign, row, edge_points in ((1, found[0], edges[0]), (-1, found[1], edges[1])):
             height = sign * heights[:, column]
             ahead = np.flatnonzero((height >= 0) & (height <= EYE_REACH * opening.width))
             ahead = ahead[np.argsort(height[ahead])]
@@ -183,10 +193,12 @@ def _seen_margin(vertices, triangles, opening):
                 continue        # a steep wall deep in a socket seen through the opening
             corners = triangles[triangle[ahead[edge], column]]
             row.append(corners[np.argmin(np.linalg.norm(vertices[corners] - point, axis=1))])
+            edge_points.append((stations[column], heights[ahead[edge], column]))
     upper, lower = (np.unique(np.asarray(row, dtype=np.int64)) for row in found)
     if min(len(upper), len(lower)) < 2:
-        return None, None, "no lid edges seen between the eye's corners (no opening in front)"
-    return upper, lower, "seen from the front"
+        return None, None, None, "no lid edges seen between the eye's corners (no opening in front)"
+    edges = tuple(np.asarray(sorted(points)) for points in edges)
+    return upper, lower, edges, "seen from the front"
 
 
 def _visible_edge(ids, opening, vertices, sign):
@@ -207,6 +219,18 @@ def _visible_edge(ids, opening, vertices, sign):
     return np.sort(ids[beyond <= STANDS_OFF * opening.width])
 
 
+def _on_seen_edge(ids, opening, vertices, sign, edge):
+    """The margin vertices `ids` no more than OFF_EDGE beyond the lid's `edge` as seen ((k, 2)
+    stations and heights, by station) at their station, away from the opening (sign +1 for the
+    upper lid, -1 for the lower); those outside the edge's stations are kept (the corners), and
+    all of them where fewer than two would be left."""
+    s = opening.station(vertices[ids])
+    beyond = sign * (opening.height(vertices[ids]) - np.interp(s, edge[:, 0], edge[:, 1]))
+    seen = (s >= edge[0, 0]) & (s <= edge[-1, 0])
+    kept = ids[~seen | (beyond <= OFF_EDGE * opening.width)]
+    return kept if len(kept) >= 2 else ids
+
+
 def row_heights(opening, points, stations):
     """(S,) the height of a row of margin points at each station (linear between them)."""
     s = opening.station(points)
@@ -216,15 +240,20 @@ def row_heights(opening, points, stations):
 
 class _Lids:
     """An eye's upper and lower lid edges (rows of vertices) and the gap between them at rest,
-    at each of EYE_STATIONS."""
+    at each of EYE_STATIONS. upper_margin, lower_margin: the rows with the skin beside a coarse
+    rim (OFF_EDGE) that the rims pull with it (core.rims)."""
 
     def __init__(self, vertices, triangles, inner, outer, frame):
         self.opening = _Opening(inner, outer, frame)
-        upper, lower, self.how = _seen_margin(vertices, triangles, self.opening)
+        upper, lower, edges, self.how = _seen_margin(vertices, triangles, self.opening)
         self.rest = None
         if upper is not None:
-            self.upper, self.lower = (_visible_edge(row, self.opening, vertices, sign)
-                                      for row, sign in ((upper, 1), (lower, -1)))
+            self.upper_margin, self.lower_margin = (
+                _visible_edge(row, self.opening, vertices, sign)
+                for row, sign in ((upper, 1), (lower, -1)))
+            self.upper, self.lower = (
+                _on_seen_edge(row, self.opening, vertices, sign, edge) for row, sign, edge
+                in ((self.upper_margin, 1, edges[0]), (self.lower_margin, -1, edges[1])))
             self.rest = self.gaps(vertices)
 
     def gaps(self, positions):

@@ -6,7 +6,9 @@ library's blink left 16% of the demo head's open height, 24-67% of the MakeHuman
 Closing an eye is a positional goal.
 
 So after the transfer each eye's lid rows (the visible lid edges the measures read,
-core.expression_measures) get a soft target: every rim vertex keeps its transferred motion
+core.expression_measures, with the skin beside a coarse rim that lies off the edge as seen: on a
+decimated head the straight edges between sparse rim vertices close only if it closes with them)
+get a soft target: every rim vertex keeps its transferred motion
 towards the viewer, and its motion along the face's up (and along the opening) becomes a goal.
 The rest of the face follows by least squares on the transfer's own gradient term:
 
@@ -21,14 +23,15 @@ The goal comes from the source's own lid rows, station by station (_StationRims)
 source's row moves up by some share of the source's open height at a station, the rim vertex
 moves up by that share of the target's open height at its station (and along the opening by the
 source's share of its width), so the eye closes as far as the source's does along the whole lid
-however tall either lid is. Where the target's rows zigzag (a
-coarse mesh: its rows pick up skin beyond the rim, which must not travel as the rim does) or the
-source's lids are not found, the goal is the source's motion at the rim vertex's corresponding
-point (the vertex map, _MappedRims), unscaled: exact where the registration is, short where the
-lids differ in height or the registration misses the inner corner.
+however tall either lid is. Where the target's rows zigzag (a remeshed face whose rows step
+between the rim and the skin beyond it, which must not travel as the rim does) or the source's
+lids are not found, the goal is the source's motion at the rim vertex's corresponding point (the
+vertex map, _MappedRims), unscaled: exact where the registration is, short where the lids differ
+in height or the registration misses the inner corner.
 """
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import ConvexHull, QhullError
 
 from . import expression_measures
 from .expression_measures import EYE_STATIONS, row_heights
@@ -40,13 +43,15 @@ from .transfer import EXPRESSIONS_PER_BLOCK, as_columns, as_rows, blocks
 # map: soft enough that a rim vertex with a poor image cannot tear the lid.
 STATION_WEIGHT = 1000.0
 MAPPED_WEIGHT = 100.0
-# The target's rows are smooth enough for station goals where each row keeps within this share of
-# the eye's mean open height of a cubic through it. A lid's highest (lowest) point lies off its
-# middle, so a parabola misreads a smooth one: the old MakeHuman body's lower lid stands 0.157
-# from a parabola, 0.069 from a cubic. From a cubic: the shared characters, the demo head, ICT and
-# its identities 0.004-0.080; the remeshed ICT face of the known-answer case, whose upper rows
-# zigzag between the rim and the skin above it, 0.15 and 0.22.
-ROUGH = 0.12
+# The target's rows are smooth enough for station goals where no vertex of a row stands further
+# than this share of the eye's mean open height inside the row's hull (towards the opening): a
+# lid's edge turns one way along the opening, a row that zigzags between the rim and the skin
+# beyond it turns back. The remeshed ICT face of the known-answer case: 0.28 and 0.49 (its upper
+# rows); every shared character and its variants (units, mirrored, triangulated, subdivided,
+# decimated), the demo head and ICT: 0-0.14. A fit (a cubic through the row) misread coarse rows:
+# a decimated head's row ending on an eye corner stood 0.199 from a parabola.
+ROUGH = 0.2
+
 
 class RimGoals:
     """The eyes' rim rows on the welded target region, and the factorised correction."""
@@ -98,17 +103,29 @@ class RimGoals:
 
 
 def _smooth(lids, vertices):
-    """Whether each of the eye's rows keeps within ROUGH x its mean open height of a cubic through
-    it along the stations (a parabola through a row of four or five vertices, which a cubic would
-    nearly pass through)."""
-    for row in (lids.upper, lids.lower):
+    """Whether each of the eye's rows (of four vertices or more) keeps within ROUGH x its mean
+    open height of its hull on the far side from the opening (heights along the stations)."""
+    for row, sign in ((lids.upper, 1), (lids.lower, -1)):
         if len(row) < 4:
             return False
-        stations, heights = (f(vertices[row]) for f in (lids.opening.station, lids.opening.height))
-        fitted = np.polyval(np.polyfit(stations, heights, 3 if len(row) >= 6 else 2), stations)
-        if np.abs(heights - fitted).max() > ROUGH * lids.rest.mean():
+        stations = lids.opening.station(vertices[row])
+        heights = sign * lids.opening.height(vertices[row])
+        if _dent(stations, heights) > ROUGH * lids.rest.mean():
             return False
     return True
+
+
+def _dent(stations, heights):
+    """How far a row's vertices (stations, heights) stand below its upper hull at most: 0 for a
+    row that turns one way (an arch), the depth of its deepest notch otherwise."""
+    try:
+        facets = ConvexHull(np.column_stack([stations, heights])).equations  # a s + b h + c <= 0
+    except QhullError:                  # all on one line: no notch
+        return 0.0
+    upper = facets[facets[:, 1] > 0]
+    # a concave hull is the lowest of its facets' lines
+    hull = np.min(-(upper[:, :1] * stations + upper[:, 2:]) / upper[:, 1:2], axis=0)
+    return float(np.max(hull - heights))
 
 
 class _StationRims:
@@ -125,19 +142,22 @@ class _StationRims:
 
     def __init__(self, lids, source_lids, vertices, source_vertices):
         """lids, source_lids: expression_measures' lids of the eye on the rest target and the rest
-        (aligned) source; vertices, source_vertices: the rest positions they are on."""
+        (aligned) source (their margin rows pulled); vertices, source_vertices: the rest positions
+        they are on."""
         self.axes = np.stack([lids.opening.up, lids.opening.along])
         self.source_axes = np.stack([source_lids.opening.up, source_lids.opening.along])
-        self.ids = np.concatenate([lids.upper, lids.lower])
-        self.source_ids = np.concatenate([source_lids.upper, source_lids.lower])
+        upper, lower = lids.upper_margin, lids.lower_margin
+        source_upper, source_lower = source_lids.upper_margin, source_lids.lower_margin
+        self.ids = np.concatenate([upper, lower])
+        self.source_ids = np.concatenate([source_upper, source_lower])
         stations = lids.opening.station(vertices[self.ids])
         # the heights' ratio between the outermost stations measured: it vanishes at the corners
         measured = np.clip(stations, EYE_STATIONS[0], EYE_STATIONS[-1])
         height_scale = _open_height(lids, vertices, measured) \
             / _open_height(source_lids, source_vertices, measured)
         share = np.zeros((len(self.ids), len(self.source_ids)))
-        at = [slice(0, len(lids.upper)), slice(len(lids.upper), len(self.ids))]
-        of = [slice(0, len(source_lids.upper)), slice(len(source_lids.upper), len(self.source_ids))]
+        at = [slice(0, len(upper)), slice(len(upper), len(self.ids))]
+        of = [slice(0, len(source_upper)), slice(len(source_upper), len(self.source_ids))]
         for mine, theirs in zip(at, of):
             share[mine, theirs] = _interpolation(
                 source_lids.opening.station(source_vertices[self.source_ids[theirs]]),
@@ -145,7 +165,7 @@ class _StationRims:
         # (axis, k, source rim vertices): up by the heights' ratio, along by the widths'
         self.shares = np.stack([height_scale[:, None] * share,
                                 share * lids.opening.width / source_lids.opening.width])
-        self.usable = min(len(lids.upper), len(lids.lower)) >= 2
+        self.usable = min(len(upper), len(lower)) >= 2
 
     def motion(self, source_deltas):
         """(E, k, 2) each rim vertex's goal motion along the face's up and the opening."""
@@ -154,9 +174,9 @@ class _StationRims:
 
 
 def _open_height(lids, vertices, stations):
-    """(S,) the eye's rest gap between its rows at the stations."""
-    return (row_heights(lids.opening, vertices[lids.upper], stations)
-            - row_heights(lids.opening, vertices[lids.lower], stations))
+    """(S,) the eye's rest gap between its margin rows at the stations."""
+    return (row_heights(lids.opening, vertices[lids.upper_margin], stations)
+            - row_heights(lids.opening, vertices[lids.lower_margin], stations))
 
 
 def _interpolation(known, wanted):
@@ -180,8 +200,9 @@ class _MappedRims:
         correspondence.VertexMap; source_triangles: the source region's triangles."""
         self.axes = lids.opening.up[None]
         mapped = vertex_map.valid
-        self.ids = np.concatenate([row[mapped[row]] for row in (lids.upper, lids.lower)])
-        self.usable = min(mapped[row].sum() for row in (lids.upper, lids.lower)) >= 2
+        rows = (lids.upper_margin, lids.lower_margin)
+        self.ids = np.concatenate([row[mapped[row]] for row in rows])
+        self.usable = min(mapped[row].sum() for row in rows) >= 2
         self.vertex_map, self.source_triangles = vertex_map, source_triangles
 
     def motion(self, source_deltas):
@@ -253,7 +274,8 @@ class _Correction:
         k, e = len(self.rows), len(offsets)
         pulls = (self.inverse[:k, :k] @ as_columns(offsets[:, self.kept]))
         forces = np.zeros((len(self.transfer.free), 3 * e))
-        forces[self.ids] = pulls            # balanced over each floating part
+        # balanced over each floating part; a vertex on both rows (where the lids meet) takes both
+        np.add.at(forces, self.ids, pulls)
         return as_rows(self.transfer.solved(forces, np.zeros((len(self.anchors), 3 * e)),
                                             self.anchors))
 
