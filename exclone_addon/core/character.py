@@ -244,12 +244,15 @@ def shared_vertices(source, face):
     differs).
     Such a target takes every source triangle's motion on its own triangle, with no registration
     (cloning.fit_shared)."""
-    if source.own_vertex_count > face.head.total:
+    if source.own_vertex_count > face.head.total \
+            or len(source.mesh.loop_totals) < MIN_SHARED_POLYGONS:
         return None
     own = source.own_ids(np.arange(len(source.mesh.vertices)))
-    source_polygons = _polygons(source.mesh.loop_totals, own[source.mesh.loop_vertices])
-    if len(source_polygons) < MIN_SHARED_POLYGONS \
-            or not source_polygons <= _polygons(*face.head.whole_polygons):
+    loops = own[source.mesh.loop_vertices]
+    # one polygon first (cheap: most targets fail here), then all of them
+    if not _has_polygon(*face.head.whole_polygons, loops[:source.mesh.loop_totals[0]]) \
+            or not _polygons(source.mesh.loop_totals, loops) <= _polygons(
+                *face.head.whole_polygons):
         return None
     in_source = np.full(face.head.total, -1)
     in_source[own] = np.arange(len(own))
@@ -259,6 +262,15 @@ def shared_vertices(source, face):
 # Polygons a source must have to be taken for the target's base mesh (a handful could match by
 # chance; a face has thousands).
 MIN_SHARED_POLYGONS = 100
+
+
+def _has_polygon(loop_totals, loop_vertices, polygon):
+    """Whether the mesh (loop_totals, loop_vertices) has the polygon (its vertex ids in order)."""
+    loop_totals, loop_vertices = np.asarray(loop_totals), np.asarray(loop_vertices)
+    starts = (np.cumsum(loop_totals) - loop_totals)[loop_totals == len(polygon)]
+    matching = starts[loop_vertices[starts] == polygon[0]]
+    return any(np.array_equal(loop_vertices[start:start + len(polygon)], polygon)
+               for start in matching)
 
 
 def _polygons(loop_totals, loop_vertices):

@@ -467,8 +467,9 @@ def _shared_vertex_map(counterpart, source):
     triangle, corner = np.full(n, -1), np.zeros(n, dtype=np.int64)
     holder = np.full(len(source.vertices), -1)
     holder_corner = np.zeros(len(source.vertices), dtype=np.int64)
-    for k in range(3):            # any triangle holding the vertex will do: its gradient is read
-        holder[source.triangles[:, k]] = np.arange(len(source.triangles))   # at the images
+    # any triangle holding the vertex will do: an image's gradient is read at its corners
+    for k in range(3):
+        holder[source.triangles[:, k]] = np.arange(len(source.triangles))
         holder_corner[source.triangles[:, k]] = k
     valid = counterpart >= 0
     valid[valid] = holder[counterpart[valid]] >= 0
