@@ -95,14 +95,19 @@ def test_fitted_sphere_is_exact_on_a_sphere():
 
 def test_jaw_motion_is_rigid_and_needs_a_rigid_patch():
     rng = np.random.default_rng(1)
-    rest = rng.normal(size=(40, 3))
-    points = rng.normal(size=(30, 3)) + [0, 0, 2]
-    turn = Rotation.from_rotvec([0.2, 0.05, 0])
-    moves = turn.apply(rest) + [0.1, -0.2, 0.0] - rest
-    motion = followers._jaw_motion(rest, moves, points)
-    assert np.allclose(points + motion, turn.apply(points) + [0.1, -0.2, 0.0])
+    face = followers.Face(None, np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), np.array([0, 0, 1.0]),
+                          np.zeros(3), np.array([0, -3.0, 0]), np.zeros((2, 3)), 9.0)
+    joint = face.mouth + face.span * (followers.JAW_JOINT[0] * face.up
+                                      - followers.JAW_JOINT[1] * face.forward)
+    rest = rng.normal(size=(40, 3)) + [0, -3, 0]
+    points = rng.normal(size=(30, 3)) + [0, -2, -2]
+    # a turn about the jaw's joint (mostly about the face's left axis) is carried exactly
+    turn = Rotation.from_rotvec([0.3, 0.05, 0])
+    about_joint = lambda x: turn.apply(x - joint) + joint  # noqa: E731
+    motion = followers._jaw_motion(face, rest, about_joint(rest) - rest, points)
+    assert np.allclose(points + motion, about_joint(points))
     sliding = rng.normal(size=rest.shape) * 0.1          # skin that slides, no bone under it
-    assert not followers._jaw_motion(rest, sliding, points).any()
+    assert not followers._jaw_motion(face, rest, sliding, points).any()
 
 
 def test_eye_look_names_with_and_without_a_prefix():

@@ -11,7 +11,8 @@ own, follows the solved skin by rules a rigged character obeys:
   move with it, turning with its triangle (a brow raise lifts the brows, a blink closes the
   lashes with the lid);
 - **teeth and tongue** (inside the mouth, behind the lips): the lower row and the tongue move
-  with the jaw, a rigid motion fitted per key to the skin around the chin; the upper row stays
+  with the jaw, a rigid motion about its joint fitted per key to the skin around the chin; gums
+  holding both rows are cut between them, a tongue inside them found; the upper row stays
   with the skull; in tongueOut the tongue also comes forward out of the opened mouth;
 - anything else (glasses, hair, a prop, a far object) stays still.
 
@@ -20,11 +21,13 @@ Pure numpy/scipy; positions and displacements in one (world) space, in and out.
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.sparse.csgraph import connected_components
-from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import (breadth_first_order, connected_components, dijkstra,
+                                  maximum_flow)
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
+from . import face_render
 from .errors import ExCloneError
 from .mesh import PolyMesh, vertex_parts, welded
 from .surface import Surface
@@ -71,15 +74,45 @@ ROOT_GAP = 0.01
 # 10-64%.
 JAW_PATCH = (0.30, 0.35)
 JAW_RIGIDITY = 0.08
+# The jaw turns about its joints in front of the ears: ICT-FaceKit's jawOpen turns its lower teeth
+# by 25 degrees about the face's left axis (rigid to 0.3%) through a point 0.36 of the span above
+# the mouth and 1.11 behind it. The chin's skin turns less than the bone and slides (fitted freely,
+# 7.5 degrees), which sent the lower molars 3.05 cm where they go 1.89; so the fit also holds that
+# joint still, weighted as 5% of the patch. Given the library's own skin motion, its teeth's error
+# against its own: jawOpen max 1.33 -> 0.77 cm (peak 4.13; mean 0.29 -> 0.27: the chin still turns
+# less than the bone), jawForward mean 0.12 -> 0.04 (peak 0.90), jawLeft 0.10 -> 0.05 (0.74).
+# Through the registration (a renumbered library head): jawOpen teeth max 1.17 -> 0.78 cm,
+# jawForward's mean 0.08 -> 0.07 but its max 0.18 -> 0.23 (a quarter of the patch: 0.25; the
+# joint slides forward there).
+JAW_JOINT = (0.36, 1.11)
+JAW_JOINT_WEIGHT = 0.05
 # A mouth part that holds the teeth of both rows (gums and palate in one piece) is split vertex
 # by vertex: the teeth are planted in it, their centres (median, per row) within 4.5% of the span
 # of it. MakeHuman's gums: 3.0-3.2%; its tongue, which the lower teeth stand beside: 5.6-7.1%.
 GUMS_HOLD = 0.045
+# Such a part is cut between the rows where the fewest surface is cut (a minimum cut of its edge
+# graph, capacities the edges' lengths) between the vertices the teeth of each row are planted in:
+# those within 2% of the span of a tooth, taking its row. ICT-FaceKit's one part of gums, palate,
+# throat, floor and tongue: the cut runs round the tongue's root and behind the last molars as
+# the library's own jawOpen does (8 of its 2,977 vertices kept up that move, 38 moved that stay);
+# the bite plane, point by point, sent the palate's back and the throat down (218 and 49).
+GUMS_PLANTED = 0.02
 # A tongue: a mouth part below the bite plane, across the midline, at least a quarter of the eye
 # span deep (a tongue is ~80%, a tooth ~8%), whose vertices near the midline (within 10% of its
 # width) run along more than 60% of its depth; a row of teeth is an arch, open behind the front.
 TONGUE_DEPTH = 0.25
 TONGUE_MIDLINE = (0.10, 0.60)
+# Without a tongue of its own, the tongue is sought in a part holding both rows (ICT-FaceKit's
+# gums, palate, throat, floor and tongue are one): among the vertices that go with the jaw, those
+# seen from above (the top of the jaw's side, not its underside), nearer the midline than the
+# lower tooth nearest them (inside the arch), and more than 8% of the span along the surface
+# from where the lower teeth are planted (not the gums round them); their largest connected
+# piece, if it is a tongue by the rule above. On the library's own mesh: its dorsum from the
+# root to behind the incisors, 137 vertices, all moving with its jaw, 0.68 of the span deep.
+TONGUE_OFF_TEETH = 0.08
+# "Seen from above": an orthographic render looking down, at most this fraction of the span per
+# pixel (half a millimetre on an adult).
+SEEN_PIXEL = 0.005
 # tongueOut: the skin opens its jaw by this fraction of jawOpen (Apple's reference shape shows the
 # mouth half open) and the tongue, moved with the jaw, comes straight forward until its tip
 # stands a quarter of its own depth in front of the lips (~2 cm on an adult, as a tongue
@@ -361,18 +394,114 @@ def _set_mouth_roles(face, mouth):
     parts = []
     for vertices, triangles, piece in mouth:
         labels, local = vertex_parts(len(vertices), triangles), face.local(vertices)
-        parts += [(piece, labels == label, local[labels == label]) for label in np.unique(labels)]
-    centres = np.array([local.mean(axis=0) for _, _, local in parts]).reshape(-1, 3)
+        for label in np.unique(labels):
+            mine = labels == label
+            parts.append((piece, mine, local[mine], _within(triangles, np.flatnonzero(mine))))
+    centres = np.array([local.mean(axis=0) for _, _, local, _ in parts]).reshape(-1, 3)
     plane = _bite_plane(centres)
     below = centres[:, 1] < plane(centres)
     for _, _, piece in mouth:
         piece.roles = np.full(len(piece.ids), UPPER)
-    for k, (piece, mine, local) in enumerate(parts):
-        others = np.arange(len(centres)) != k
+    both_rows = []       # the parts holding both rows: (piece, their ids in it, ...)
+    for k, (piece, mine, local, triangles) in enumerate(parts):
+        others = np.flatnonzero(np.arange(len(centres)) != k)
         if _holds_both_rows(face, local, centres[others], below[others]):
-            piece.roles[mine] = np.where(local[:, 1] < plane(local), LOWER, UPPER)
+            planted = _planted(face, local, [parts[j][2] for j in others], below[others])
+            piece.roles[mine] = _rows_cut(face, local, triangles, planted, plane)
+            both_rows.append((piece, np.flatnonzero(mine), local, triangles, planted))
         elif below[k]:
             piece.roles[mine] = TONGUE if _is_tongue(face, local) else LOWER
+    if any((piece.roles == TONGUE).any() for _, _, piece in mouth):
+        return
+    for piece, ids, local, triangles, planted in both_rows:
+        tongue = _tongue_within(face, local, triangles, piece.roles[ids] == LOWER, planted)
+        piece.roles[ids[tongue]] = TONGUE
+
+
+def _planted(face, local, others, others_below):
+    """(lower, upper, lower teeth points): the vertices of a part (face coordinates `local`) the
+    teeth of each row are planted in (within GUMS_PLANTED of a tooth, taking the row of the
+    nearest: `others` the other mouth parts' points, below the bite plane or not), and the lower
+    row's points."""
+    points = np.concatenate(others)
+    rows = np.repeat(others_below, [len(p) for p in others])
+    distance, nearest = cKDTree(points).query(local)
+    planted = distance < GUMS_PLANTED * face.span
+    return (np.flatnonzero(planted & rows[nearest]), np.flatnonzero(planted & ~rows[nearest]),
+            points[rows])
+
+
+def _rows_cut(face, local, triangles, planted, plane):
+    """(m,) UPPER or LOWER per vertex of a part holding the teeth of both rows (face coordinates
+    `local`, its `triangles`, `planted` as _planted gives): the side of the minimum cut (edge
+    lengths) between the vertices each row's teeth are planted in. The gums of both rows, the
+    palate, the throat and the floor of the mouth meet far behind the teeth, where the palate
+    dips below the bite plane: the plane alone sent ICT's palate and throat down with the jaw.
+    Without planted teeth of both rows, the bite plane decides."""
+    lower, upper, _ = planted
+    if not len(lower) or not len(upper):
+        return np.where(local[:, 1] < plane(local), LOWER, UPPER)
+    edges, lengths = _edges(local, triangles)
+    # integer capacities (scipy's maximum_flow): lengths in 1e-4 of the span, at least 1
+    capacity = np.maximum(np.rint(lengths / face.span * 1e4), 1).astype(np.int64)
+    n = len(local)
+    source, sink, unbounded = n, n + 1, int(2 * capacity.sum() + 1)
+    tails = np.concatenate([edges[:, 0], edges[:, 1], np.full(len(lower), source), upper])
+    heads = np.concatenate([edges[:, 1], edges[:, 0], lower, np.full(len(upper), sink)])
+    capacities = np.concatenate([capacity, capacity, np.full(len(lower) + len(upper), unbounded)])
+    graph = csr_matrix((capacities.astype(np.int32), (tails, heads)), shape=(n + 2, n + 2))
+    residual = (graph - maximum_flow(graph, source, sink).flow).tocsr()
+    residual.data = np.where(residual.data > 0, residual.data, 0)
+    residual.eliminate_zeros()
+    jawed = np.zeros(n + 2, dtype=bool)
+    jawed[breadth_first_order(residual, source, directed=True, return_predecessors=False)] = True
+    return np.where(jawed[:n], LOWER, UPPER)
+
+
+def _tongue_within(face, local, triangles, jawed, planted):
+    """(m,) mask of the tongue in a part holding both rows (face coordinates `local`, its
+    `triangles`; `jawed` its vertices that go with the jaw; `planted` as _planted gives): see
+    TONGUE_OFF_TEETH. None of them if no such piece is a tongue."""
+    lower, _, lower_teeth = planted
+    none = np.zeros(len(local), dtype=bool)
+    if not len(lower) or not jawed.any():
+        return none
+    edges, lengths = _edges(local, triangles)
+    graph = coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(len(local),) * 2).tocsr()
+    off_teeth = dijkstra(graph, directed=False, indices=lower, min_only=True) \
+        > TONGUE_OFF_TEETH * face.span
+    inside = np.abs(local[:, 0]) < np.abs(lower_teeth[cKDTree(lower_teeth).query(local)[1], 0])
+    candidate = jawed & off_teeth & inside \
+        & _seen_from_above(face, local, triangles[jawed[triangles].all(axis=1)])
+    if not candidate.any():
+        return none
+    parts = vertex_parts(len(local), triangles[candidate[triangles].all(axis=1)])
+    tongue = candidate & (parts == np.bincount(parts[candidate]).argmax())
+    return tongue if _is_tongue(face, local[tongue]) else none
+
+
+def _seen_from_above(face, local, triangles):
+    """(m,) whether each vertex (face coordinates) is a corner of a triangle seen from above (an
+    orthographic render looking down the face's up axis, SEEN_PIXEL of the span per pixel)."""
+    seen = np.zeros(len(local), dtype=bool)
+    if not len(triangles):
+        return seen
+    used = local[np.unique(triangles)]
+    width = 1.05 * max(np.ptp(used[:, 0]), np.ptp(used[:, 2]))
+    size = int(np.clip(np.ceil(width / (SEEN_PIXEL * face.span)), 16, 1024))
+    camera = face_render.Camera.looking((used.min(axis=0) + used.max(axis=0)) / 2,
+                                        np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]),
+                                        width, size=size)
+    shown = face_render.render(local, triangles, camera).triangle
+    seen[triangles[np.unique(shown[shown >= 0])].ravel()] = True
+    return seen
+
+
+def _edges(local, triangles):
+    """((k, 2) the triangles' edges, once each; (k,) their lengths)."""
+    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
+    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    return edges, np.linalg.norm(local[edges[:, 0]] - local[edges[:, 1]], axis=1)
 
 
 def _holds_both_rows(face, local, other_centres, other_below):
@@ -418,7 +547,7 @@ def _mouth_motion(face, skin_deltas, names, points, roles):
     rest = face.skin.vertices[patch]
     for e, name in enumerate(names):
         if len(patch) >= 3:
-            motion[e, jawed] = _jaw_motion(rest, skin_deltas[e, patch], points[jawed])
+            motion[e, jawed] = _jaw_motion(face, rest, skin_deltas[e, patch], points[jawed])
         tongue = roles == TONGUE
         if name.endswith("tongueOut") and tongue.any():
             motion[e, tongue] += _tongue_out(face, skin_deltas[e], points[tongue] + motion[e, tongue])
@@ -444,17 +573,29 @@ def _jaw_patch(face):
     return ids[near & below]
 
 
-def _jaw_motion(rest, moves, points):
-    """(m, 3) the motion of `points` with the jaw: the rigid motion (Kabsch,
-    Rotation.align_vectors) that best carries the patch's rest positions by `moves`, if the patch
-    moves as one body; else none."""
+def _jaw_motion(face, rest, moves, points):
+    """(m, 3) the motion of `points` with the jaw: if the patch (rest positions, `moves`) moves
+    as one body (the rigid motion that best carries it leaves under JAW_RIGIDITY), the rigid
+    motion that best carries the patch and holds the jaw's joint (JAW_JOINT) still, weighted
+    as JAW_JOINT_WEIGHT of the patch; else none."""
     if not moves.any():
         return np.zeros_like(points)
-    centre = rest.mean(axis=0)
-    moved = rest + moves
-    moved_centre = moved.mean(axis=0)
-    rotation = Rotation.align_vectors(moved - moved_centre, rest - centre)[0]
-    residual = rotation.apply(rest - centre) + moved_centre - moved
+    rotation, centre, moved_centre = _rigid_fit(rest, rest + moves, np.ones(len(rest)))
+    residual = rotation.apply(rest - centre) + moved_centre - rest - moves
     if np.sqrt(np.mean(residual ** 2)) >= JAW_RIGIDITY * np.sqrt(np.mean(moves ** 2)):
         return np.zeros_like(points)
+    joint = face.mouth + face.span * (JAW_JOINT[0] * face.up - JAW_JOINT[1] * face.forward)
+    anchored = np.vstack([rest, joint])
+    rotation, centre, moved_centre = _rigid_fit(
+        anchored, anchored + np.vstack([moves, np.zeros(3)]),
+        np.append(np.ones(len(rest)), JAW_JOINT_WEIGHT * len(rest)))
     return rotation.apply(points - centre) + moved_centre - points
+
+
+def _rigid_fit(rest, moved, weights):
+    """(Rotation, rest centre, moved centre) of the weighted rigid motion that best carries the
+    points `rest` to `moved` (Kabsch, Rotation.align_vectors)."""
+    centre = np.average(rest, axis=0, weights=weights)
+    moved_centre = np.average(moved, axis=0, weights=weights)
+    rotation = Rotation.align_vectors(moved - moved_centre, rest - centre, weights=weights)[0]
+    return rotation, centre, moved_centre
