@@ -2,8 +2,9 @@
 gums, palate, throat, floor of the mouth and tongue are one piece holding the teeth of both rows.
 The truth is the library's own motion of its own parts: the followers, given the library's skin
 motion, must split that piece where the library's jaw splits it, find its tongue, and move the
-lower teeth as its jaw does; through the registration (a copy of the library's mesh numbered
-differently, as a .glb/.fbx export of an ICT head is), tongueOut brings that tongue out."""
+lower teeth as its jaw does; tongueOut brings that tongue out through the registration (a copy
+of the library's mesh numbered differently, as a .glb/.fbx export of an ICT head is) and with one
+base mesh (the library's own numbering: every part solved, cloning.fit_shared)."""
 import numpy as np
 import pytest
 
@@ -76,21 +77,25 @@ def test_one_part_gums_split_and_move_as_the_library_jaw_moves_them(library):
             assert error.mean() < {"gums_and_tongue": 0.12, "teeth": 0.08}[part] * peak, name
 
 
-def renumbered_clone(library, vertices, seed=1):
+def cloned(library, vertices, renumbered=True):
     """jawOpen and tongueOut (jawOpen at followers.TONGUE_OUT_JAW_OPEN on the skin, as
     core.library.arkit_blendshapes makes it) cloned from the library onto its own mesh with the
-    vertices `vertices` numbered differently: the registration and the followers' path. Returns
-    the deltas (2, n, 3) in the library's numbering."""
-    order = np.random.default_rng(seed).permutation(len(vertices))
+    vertices `vertices`: numbered differently (the registration and the followers' path) or as
+    the library numbers them (the one-base-mesh path, every part solved). Returns the deltas
+    (2, n, 3) in the library's numbering."""
+    order = np.random.default_rng(1).permutation(len(vertices)) if renumbered \
+        else np.arange(len(vertices))
     mesh = PolyMesh(vertices[order], library.mesh.loop_totals,
                     np.argsort(order)[library.mesh.loop_vertices])
     source = library.subset(["jawOpen"])
     deltas = np.concatenate([source.deltas, followers.TONGUE_OUT_JAW_OPEN * source.deltas])
     found = character.find([character.Part("head", mesh)])
-    assert character.shared_vertices(source, found) is None   # not the one-base-mesh path
+    shared = character.shared_vertices(source, found)
+    assert (shared is None) == renumbered
     result = clone_expressions(source.mesh, deltas, ["jawOpen", "tongueOut"], found.head.mesh,
                                source_landmarks=source.automatic_landmarks,
-                               face_guide=found.guide, fixed_vertices=found.head.fixed)
+                               face_guide=found.guide, fixed_vertices=found.head.fixed,
+                               shared_vertices=shared)
     return found.head.spread(result.deltas)[:, np.argsort(order)]
 
 
@@ -107,26 +112,30 @@ def assert_tongue_comes_out(library, vertices, deltas):
     # the tongue's depth: the part's jaw side's motion forward in tongueOut, beyond jawOpen's
     out = (deltas[1, first:end] - followers.TONGUE_OUT_JAW_OPEN * deltas[0, first:end]) \
         @ face.forward
+    assert out.max() > 0, f"nothing comes forward in tongueOut ({reach})"
     tongue = part[out > 0.5 * out.max()] @ face.forward
     wanted = followers.TONGUE_OUT_REACH * np.ptp(tongue)
     print(f"the part's front beyond the lips: jawOpen {reach['jawOpen']:.2f}, tongueOut "
           f"{reach['tongueOut']:.2f} (a quarter of the tongue's depth: {wanted:.2f})")
     assert reach["jawOpen"] < 0                         # inside the mouth when it only opens
     # before: tongueOut was the jaw half open, the tongue as far behind the lips as in jawOpen
+    # (registered: the tongue not found in its part; one base mesh: no follower ran)
     assert abs(reach["tongueOut"] - wanted) < 0.1 * wanted
     assert np.ptp(tongue) > followers.TONGUE_DEPTH * face.span
 
 
-def test_tongue_out_brings_the_one_part_tongue_out_of_a_renumbered_library_head(library):
-    deltas = renumbered_clone(library, library.mesh.vertices)
+@pytest.mark.parametrize("renumbered", [True, False], ids=["registered", "one base mesh"])
+def test_tongue_out_brings_the_one_part_tongue_out_of_a_library_head(library, renumbered):
+    deltas = cloned(library, library.mesh.vertices, renumbered)
     assert_tongue_comes_out(library, library.mesh.vertices, deltas)
 
 
 @pytest.mark.skipif(not ICT_IDENTITIES.exists(), reason=f"needs {ICT_IDENTITIES} (shared data)")
-def test_tongue_out_on_a_renumbered_ict_identity(library):
+@pytest.mark.parametrize("renumbered", [True, False], ids=["registered", "one base mesh"])
+def test_tongue_out_on_an_ict_identity(library, renumbered):
     with np.load(ICT_IDENTITIES) as identities:
         modes = identities["deltas"].astype(np.float64)
     vertices = library.mesh.vertices + np.tensordot(
         np.random.default_rng(4).standard_normal(len(modes)), modes, 1)
-    deltas = renumbered_clone(library, vertices)
+    deltas = cloned(library, vertices, renumbered)
     assert_tongue_comes_out(library, vertices, deltas)

@@ -548,6 +548,7 @@ def transfer_expressions(fit, source_deltas, names):
             result[moving] = _transferred(fit, deltas[moving])
     if moving.any():
         _follow_unsolved(result, fit, names)
+        _tongue_out_of_solved_parts(result, fit, names)
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
     timings["total"] = sum(timings.values())
     return CloneResult(list(names), _in_own_numbering(result, fit.welded_target.index),
@@ -642,6 +643,21 @@ def _follow_unsolved(result, fit, names):
     triangles = all_triangles[np.isin(all_triangles[:, 0], separate)]
     motion = followers.follow(face, result, names, [(vertices, triangles)])[0].deltas
     result[:, separate] = motion[:, separate]
+
+
+def _tongue_out_of_solved_parts(result, fit, names):
+    """A tongue among the solved region's separate parts (a target of the source's own base mesh
+    solves them all, §7) comes forward in tongueOut keys by the followers' rule (§9); changed in
+    place. The parts not connected to the face's landmarks are the separate ones."""
+    if not any(name.endswith("tongueOut") for name in names) or not len(fit.target_landmarks):
+        return
+    region = fit.target_region
+    parts = vertex_parts(len(region.vertices), region.triangles)
+    separate = ~np.isin(parts, parts[fit.welded_target.index[fit.target_landmarks]])
+    triangles = region.triangles[separate[region.triangles[:, 0]]]
+    face = _face_of(fit) if len(triangles) else None
+    if face is not None:
+        result += followers.tongue_out(face, result, names, region.vertices, triangles)
 
 
 def _face_of(fit):

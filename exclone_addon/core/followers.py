@@ -233,6 +233,35 @@ def follow(face, skin_deltas, names, meshes):
     return followings
 
 
+def tongue_out(face, deltas, names, vertices, triangles):
+    """(E, n, 3) what each tongueOut key adds to a tongue among a mesh's separate parts
+    (`triangles` over `vertices`, n) that already move by `deltas` (E, n, 3, the skin's too, in
+    the face's skin numbering): in a target of the source's own base mesh the transfer moves
+    every part, the tongue with the jaw (docs/method.md §7), and this brings it forward as
+    follow() brings a tongue it places (TONGUE_OUT_REACH). Zero elsewhere and in other keys."""
+    deltas = np.asarray(deltas, dtype=np.float64)
+    added = np.zeros_like(deltas)
+    keys = [e for e, name in enumerate(names) if name.endswith("tongueOut")]
+    weld, index = _welded(vertices, triangles)
+    points, triangles = weld.vertices, weld.triangles()
+    if not keys or not len(triangles):
+        return added
+    mouth = [(points[p.ids], _within(triangles, p.ids), p)
+             for p in (_classified(face, points, ids) for ids in _pieces(points, triangles))
+             if p.kind == MOUTH]
+    _set_mouth_roles(face, mouth)
+    # each welded vertex's motion: that of one of its copies
+    copy = np.zeros(len(points), dtype=np.int64)
+    copy[index] = np.arange(len(index))
+    forward = np.zeros((len(names), len(points), 3))
+    for _, _, piece in mouth:
+        tongue = piece.ids[piece.roles == TONGUE]
+        for e in keys if len(tongue) else ():
+            moved = points[tongue] + deltas[e, copy[tongue]]
+            forward[e, tongue] = _tongue_out(face, deltas[e], moved)
+    return forward[:, index]
+
+
 def _welded(vertices, triangles):
     """(welded PolyMesh, (m,) welded id of every vertex) of a triangle mesh (mesh.welded)."""
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
