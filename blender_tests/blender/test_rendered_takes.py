@@ -53,6 +53,13 @@ def turning():
 
 
 @pytest.fixture(scope="module")
+def turning_wide():
+    """The turning take after a wide calibration (the head turning yaw +-30, pitch +-20 deg)."""
+    take = rendered_take("turning", calibration="wide")
+    return take, track_rendered(take)
+
+
+@pytest.fixture(scope="module")
 def other_identity(shared_data):
     take = rendered_take("moving", identity=OTHER_IDENTITY)
     return take, track_rendered(take)
@@ -103,6 +110,18 @@ MEASURED_FALSE_WEIGHT = {"": 0.85, "eye": 0.8}
 def test_a_turning_neutral_face_as_measured(turning, keys):
     value, name = largest_false_weight(*turning, only=keys)
     assert value <= MEASURED_FALSE_WEIGHT[keys], f"{name} reached {value:.2f}"
+
+
+# The same turning take after a wide calibration (three seconds of a neutral face turning over
+# yaw +-30, pitch +-20 deg; the tracker unchanged: docs/method.md §11): 0.59 (browDown_L), the eyes'
+# keys 0.53 (eyeLookIn_R), checked with a margin.
+MEASURED_FALSE_WEIGHT_WIDE = {"": 0.68, "eye": 0.62}
+
+
+@pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT_WIDE), ids=["all keys", "eye keys"])
+def test_a_turning_neutral_face_after_a_wide_calibration_as_measured(turning_wide, keys):
+    value, name = largest_false_weight(*turning_wide, only=keys)
+    assert value <= MEASURED_FALSE_WEIGHT_WIDE[keys], f"{name} reached {value:.2f}"
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "

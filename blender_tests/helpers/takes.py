@@ -157,6 +157,11 @@ BUMP_FRAMES = 20               # each shape rises and falls over this many frame
 BUMP_SPACING = 10              # a new shape starts every this many frames (two overlap)
 RENDER_CACHE = Path(tempfile.gettempdir()) / "exclone_rendered_takes"
 RENDER_VERSION = 2             # bump when the renderer or a take's recipe changes
+# A wide calibration: the actor holds a neutral face and turns the head slowly over the range a
+# take uses (what a product can ask: "hold a neutral face and turn your head"), yaw +-30 deg and
+# pitch +-20 deg in a figure of eight over this many frames (3 s at 30 fps).
+WIDE_CALIBRATION_FRAMES = 90
+CALIBRATIONS = ("small", "wide")
 
 
 def unit_keys(names, unit):
@@ -165,22 +170,32 @@ def unit_keys(names, unit):
     return [names.index(name) for name in halves]
 
 
-def take_recipe(kind, frames=None, seed=3):
+def calibration_length(calibration="small"):
+    """The frames a calibration of this kind reads (CALIBRATIONS)."""
+    if calibration not in CALIBRATIONS:
+        raise ValueError(f"calibration {calibration!r} is not one of {CALIBRATIONS}")
+    return WIDE_CALIBRATION_FRAMES if calibration == "wide" else CALIBRATION_FRAMES
+
+
+def take_recipe(kind, frames=None, seed=3, calibration="small"):
     """(weights of each DRIVEN unit (T, U), head turn in camera axes as yxz Euler degrees (T, 3)).
 
     kind: "moving" (the units in overlapping bumps, the head turning up to 25 deg about one axis),
     "still" (the same bumps, the head still) or "turning" (a neutral face turning up to 30 deg).
-    The first CALIBRATION_FRAMES hold a neutral face turning a little (what calibration reads).
+    The first calibration_length(calibration) frames hold a neutral face: turning a little
+    ("small": 10 deg yaw, 6 deg pitch over one second) or over the take's range ("wide": yaw
+    +-30 deg, pitch +-20 deg over three seconds); the take after them is the same either way.
     """
     rng = np.random.default_rng(seed)
-    count = CALIBRATION_FRAMES + BUMP_SPACING * len(DRIVEN) + BUMP_FRAMES
+    calibration_frames = calibration_length(calibration)
+    count = calibration_frames + BUMP_SPACING * len(DRIVEN) + BUMP_FRAMES
     frames = frames or count
     t = np.arange(frames) / FPS
     weights = np.zeros((frames, len(DRIVEN)))
     if kind != "turning":
         bump = 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(BUMP_FRAMES) / (BUMP_FRAMES - 1))
         for u in range(len(DRIVEN)):
-            start = CALIBRATION_FRAMES + BUMP_SPACING * u
+            start = calibration_frames + BUMP_SPACING * u
             stop = min(start + BUMP_FRAMES, frames)
             if start < frames:
                 weights[start:stop, u] = rng.uniform(0.6, 1.0) * bump[:stop - start]
@@ -190,13 +205,18 @@ def take_recipe(kind, frames=None, seed=3):
         # the turns start from zero where calibration ends (it ends near zero too): a head
         # cannot jump 30 deg between two frames (version 1 did, and every filter lags a jump)
         size = 30.0 if kind == "turning" else 25.0
-        since = t - CALIBRATION_FRAMES / FPS
+        since = t - calibration_frames / FPS
         angles = np.column_stack((size * np.sin(2 * np.pi * 0.23 * since),
                                   0.7 * size * np.sin(2 * np.pi * 0.17 * since),
                                   0.4 * size * np.sin(2 * np.pi * 0.13 * since)))
-    c = t[:CALIBRATION_FRAMES]
-    angles[:CALIBRATION_FRAMES] = np.column_stack((10 * np.sin(2 * np.pi * c), 6 * np.sin(4 * np.pi * c),
-                                                   0 * c))
+    c = t[:calibration_frames]
+    if calibration == "wide":
+        period = WIDE_CALIBRATION_FRAMES / FPS
+        angles[:calibration_frames] = np.column_stack((30 * np.sin(2 * np.pi * c / period),
+                                                       20 * np.sin(4 * np.pi * c / period), 0 * c))
+    else:
+        angles[:calibration_frames] = np.column_stack((10 * np.sin(2 * np.pi * c),
+                                                       6 * np.sin(4 * np.pi * c), 0 * c))
     return weights, angles
 
 
@@ -214,17 +234,19 @@ def identity_head(identity):
     return vertices, library.deltas, list(library.names), library.parts
 
 
-def _take_key(kind, identity, frames, seed):
+def _take_key(kind, identity, frames, seed, calibration="small"):
     text = f"v{RENDER_VERSION}-{kind}-{identity}-{frames}-{seed}-{IMAGE_SIZE}-{RENDER_DISTANCE_CM}"
+    if calibration != "small":      # the small calibration's takes keep their cache keys
+        text += f"-{calibration}-calibration"
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-def rendered_take(kind="moving", identity=None, frames=None, seed=3):
+def rendered_take(kind="moving", identity=None, frames=None, seed=3, calibration="small"):
     """A take rendered in background Blender (needs bpy), cached on disk by its parameters:
     frames (list of PNG paths), truth (library-key weights (T, E)), unit weights (T, U), the
-    head's model -> camera rotations, translations, the camera and render seconds per frame
-    (CPU time, 0 when read from the cache)."""
-    weights, angles = take_recipe(kind, frames, seed)
+    head's model -> camera rotations, translations, the camera, render seconds per frame
+    (CPU time, 0 when read from the cache) and how many of its first frames are calibration's."""
+    weights, angles = take_recipe(kind, frames, seed, calibration)
     vertices, deltas, names, parts = identity_head(identity)
     truth = np.zeros((len(weights), len(names)))
     for u, unit in enumerate(DRIVEN):
@@ -234,13 +256,14 @@ def rendered_take(kind="moving", identity=None, frames=None, seed=3):
     centre = locations.sample(vertices).mean(axis=0)
     translation = np.array([0.0, 0.0, RENDER_DISTANCE_CM])
     paths, seconds = cached_frames(
-        RENDER_CACHE / _take_key(kind, identity, len(weights), seed), len(weights),
+        RENDER_CACHE / _take_key(kind, identity, len(weights), seed, calibration), len(weights),
         lambda paths: _render_take(paths, vertices, deltas, parts, truth, rotations, translation,
                                    centre, locations))
     return SimpleNamespace(frames=paths, truth=truth, unit_weights=weights, names=names,
                            rotations=rotations, translation=translation, kind=kind,
                            camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds,
-                           vertices=vertices, deltas=deltas)
+                           vertices=vertices, deltas=deltas,
+                           calibration_frames=calibration_length(calibration))
 
 
 def _render_take(paths, vertices, deltas, parts, truth, rotations, translation, centre,
@@ -268,7 +291,7 @@ def track_rendered(take, avatar=None, tracker_model=None):
     library key (T, E; NaN before calibration or without a face), model -> camera rotations
     (None without a face), and the step's milliseconds."""
     session = FaceTrackingSession(avatar=avatar if avatar is not None else ict_avatar(take),
-                                  camera=take.camera, calibration_frames=CALIBRATION_FRAMES,
+                                  camera=take.camera, calibration_frames=take.calibration_frames,
                                   tracker_model=tracker_model)
     weights = np.full(take.truth.shape, np.nan)
     rotations, step_ms = [], []
@@ -289,7 +312,7 @@ def track_rendered(take, avatar=None, tracker_model=None):
 def unit_scores(take, tracked):
     """Per DRIVEN unit over the frames after calibration: (correlation, mean absolute error);
     a split unit's estimate is the mean of its halves."""
-    frames = slice(CALIBRATION_FRAMES, None)
+    frames = slice(take.calibration_frames, None)
     scores = {}
     for u, unit in enumerate(DRIVEN):
         keys = unit_keys(take.names, unit)
@@ -304,7 +327,7 @@ def largest_false_weight(take, tracked, only=""):
     """The largest weight after calibration on a take whose face stays neutral, and its key's
     name, over the keys whose names start with `only` (default: every key)."""
     keys = [j for j, name in enumerate(take.names) if name.startswith(only)]
-    weights = tracked.weights[CALIBRATION_FRAMES:, keys]
+    weights = tracked.weights[take.calibration_frames:, keys]
     k, j = np.unravel_index(np.nanargmax(weights), weights.shape)
     return float(weights[k, j]), take.names[keys[j]]
 
@@ -315,7 +338,7 @@ def pose_errors(take, tracked):
 
     The tracker's model frame differs from the head's by a constant rotation: the one that best
     aligns the estimates to the truth (their mean difference) is taken out first."""
-    ks = [k for k in range(CALIBRATION_FRAMES, len(take.frames)) if tracked.rotations[k] is not None]
+    ks = [k for k in range(take.calibration_frames, len(take.frames)) if tracked.rotations[k] is not None]
     estimated = Rotation.concatenate([tracked.rotations[k] for k in ks])
     true = take.rotations[ks]
     offset = (true.inv() * estimated).mean()
