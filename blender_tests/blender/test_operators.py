@@ -430,6 +430,23 @@ def test_generate_arkit_shapes_gives_apples_names(head, capfd):
     assert np.allclose(arkit["jawOpen"], cloned["lib_jawOpen"], atol=1e-6)
 
 
+def test_generate_arkit_shapes_brings_a_one_mesh_heads_own_tongue_out(library):
+    """An ICT-FaceKit head (the library's own mesh: its tongue is part of the one mesh): tongueOut
+    brings the tongue's tip in front of the lips (before, the key was half of the cloned jawOpen
+    and the tip stayed 1.6 cm behind them)."""
+    obj = add_object("ict", library.mesh)
+    assert bpy.ops.exclone.generate_arkit_shapes() == {'FINISHED'}
+    tongue_out = keys(obj)["tongueOut"]
+    moved = library.mesh.vertices + tongue_out
+    names, ids = library.automatic_landmarks
+    lips = library.mesh.vertices[[ids[list(names).index(n)] for n in ("upper_lip", "lower_lip")]]
+    start, stop = library.parts["face"]
+    near_lips = np.linalg.norm(library.mesh.vertices[start:stop] - lips.mean(axis=0), axis=1) < 2.0
+    lips_front = moved[start:stop][near_lips, 2].max()          # ICT faces +Z
+    start, stop = library.parts["gums_and_tongue"]
+    assert moved[start:stop, 2].max() > lips_front + 0.5
+
+
 def test_edited_landmarks_are_hard_constraints(head, capfd):
     obj = add_object("head", head)
     bpy.ops.exclone.auto_landmarks()

@@ -302,7 +302,7 @@ class EXCLONE_OT_generate_arkit_shapes(_Engine, bpy.types.Operator):
 
     def plan(self, context):
         started = self.started()
-        source = workflow.library_source()
+        source = workflow.arkit_source()
         target = workflow.resolve_target(context, source, None)
 
         def finish(run):

@@ -87,6 +87,14 @@ def library_source():
     return _library(data.LIBRARY_FILE)
 
 
+@lru_cache(maxsize=1)
+def arkit_source():
+    """What Generate ARKit Shapes clones: the built-in library with a tongueOut of its own
+    (ExpressionLibrary.with_tongue_out), so that the clone makes it on every part of the target,
+    a one-mesh head's own tongue included (made once; shared, never changed in place)."""
+    return library_source().with_tongue_out()
+
+
 def object_source(obj, description=None):
     """The expressions of a mesh object's shape keys as an ExpressionLibrary. The face is found
     on the object as on a target (character_face), and only its head region is the source (a

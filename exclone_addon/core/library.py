@@ -78,6 +78,26 @@ class ExpressionLibrary:
                                  dict(self.parts), self.automatic_landmarks, self.description,
                                  self.head)
 
+    def with_tongue_out(self):
+        """The library with a tongueOut of its own where it has jawOpen and no tongueOut
+        (tongue_out_of_jaw), so that a clone makes it on every part of the target: a one-mesh
+        head's own tongue comes forward in it as a separate tongue object's does."""
+        if "tongueOut" in self.names or "jawOpen" not in self.names:
+            return self
+        jaw = self.deltas[self.names.index("jawOpen")]
+        return ExpressionLibrary(self.mesh, self.names + ["tongueOut"],
+                                 np.concatenate([self.deltas, tongue_out_of_jaw(jaw)[None]]),
+                                 self.landmarks68, dict(self.parts), self.automatic_landmarks,
+                                 self.description, self.head)
+
+
+def tongue_out_of_jaw(jaw_open):
+    """A tongueOut for a face without one, from its jawOpen deltas (..., 3): the jaw opened by
+    followers.TONGUE_OUT_JAW_OPEN (Apple's reference shape shows the mouth half open); the
+    followers bring the tongue forward in it (a face without a tongue still opens its mouth, as a
+    performer's does)."""
+    return TONGUE_OUT_JAW_OPEN * np.asarray(jaw_open)
+
 
 def load_library(path=None):
     """Load an expression library .npz (default: the bundled ICT-FaceKit ARKit library)."""
@@ -160,9 +180,7 @@ def arkit_blendshapes(names, deltas):
     Returns (arkit_names, arkit_deltas, missing): the ARKit shapes available, in Apple's order
     (split _L/_R halves of browInnerUp and cheekPuff are summed into one shape; non-ARKit
     expressions are dropped), and the ARKit names that could not be made. Without its own
-    tongueOut, tongueOut is jawOpen at followers.TONGUE_OUT_JAW_OPEN on the skin: the mouth opens
-    for the tongue, which the followers bring forward (a face without a tongue still opens its
-    mouth, as a performer's does).
+    tongueOut, tongueOut is tongue_out_of_jaw of jawOpen.
     """
     index = {name: i for i, name in enumerate(names)}
     out_names, out_deltas, missing = [], [], []
@@ -173,7 +191,7 @@ def arkit_blendshapes(names, deltas):
         elif halves and all(h in index for h in halves):
             out_deltas.append(sum(deltas[index[h]] for h in halves))
         elif name == "tongueOut" and "jawOpen" in index:
-            out_deltas.append(TONGUE_OUT_JAW_OPEN * deltas[index["jawOpen"]])
+            out_deltas.append(tongue_out_of_jaw(deltas[index["jawOpen"]]))
         else:
             missing.append(name)
             continue
