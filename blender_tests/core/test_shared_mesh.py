@@ -130,6 +130,32 @@ def test_the_library_onto_its_own_mesh_moves_every_part_as_itself(library):
         assert errors[name, "gums_and_tongue"][0] < 0.08
 
 
+def test_the_eyes_of_the_librarys_own_mesh_turn_in_eye_look_keys(library):
+    """The library's eyeLook keys move the lids only; on a target of its own mesh, whose eyes
+    the transfer solves with the skin, each eye still turns about its centre by the stated angle
+    in the keys of its side (followers.EYE_LOOK_DEGREES), the lids as the library's (before:
+    the eyes kept still)."""
+    face = character.find([character.Part("ict", library.mesh)])
+    source = library.subset(["eyeLookOut_L", "eyeLookUp_R"])
+    result = clone_expressions(source.mesh, source.deltas, source.names, face.head.mesh,
+                               source_landmarks=source.automatic_landmarks,
+                               face_guide=face.guide, fixed_vertices=face.head.fixed,
+                               shared_vertices=character.shared_vertices(library, face))
+    whole = face.head.spread(face.to_world(result.deltas))
+    start, stop = library.parts["eyeballs"]
+    rest = library.mesh.vertices[start:stop]
+    for k, (turning, degrees) in enumerate([(rest[:, 0] > 0, 30.0), (rest[:, 0] < 0, 25.0)]):
+        for eye, angle in ((turning, degrees), (~turning, 0.0)):
+            moved = rest[eye] + whole[k, start:stop][eye]
+            turn = Rotation.align_vectors(moved - moved.mean(axis=0),
+                                          rest[eye] - rest[eye].mean(axis=0))[0]
+            assert np.degrees(turn.magnitude()) == pytest.approx(angle, abs=0.5)
+        start_face, stop_face = library.parts["face"]
+        lids = np.linalg.norm(whole[k, start_face:stop_face]
+                              - source.deltas[k, start_face:stop_face], axis=1)
+        assert lids.max() < 1e-3 * np.linalg.norm(source.deltas[k], axis=1).max()
+
+
 @pytest.mark.skipif(not IDENTITIES.exists(), reason=f"needs the shared ICT identity model "
                                                      f"({IDENTITIES})")
 def test_a_new_ict_identity_takes_the_ict_models_own_expressions(library):

@@ -548,7 +548,7 @@ def transfer_expressions(fit, source_deltas, names):
             result[moving] = _transferred(fit, deltas[moving])
     if moving.any():
         _follow_unsolved(result, fit, names)
-        _tongue_out_of_solved_parts(result, fit, names)
+        _rules_on_solved_parts(result, fit, names)
     timings = dict(fit.timings, transfer=time.perf_counter() - start)
     timings["total"] = sum(timings.values())
     return CloneResult(list(names), _in_own_numbering(result, fit.welded_target.index),
@@ -645,11 +645,13 @@ def _follow_unsolved(result, fit, names):
     result[:, separate] = motion[:, separate]
 
 
-def _tongue_out_of_solved_parts(result, fit, names):
-    """A tongue among the solved region's separate parts (a target of the source's own base mesh
-    solves them all, §7) comes forward in tongueOut keys by the followers' rule (§9); changed in
-    place. The parts not connected to the face's landmarks are the separate ones."""
-    if not any(name.endswith("tongueOut") for name in names) or not len(fit.target_landmarks):
+def _rules_on_solved_parts(result, fit, names):
+    """The solved region's separate parts (a target of the source's own base mesh solves them
+    all, §7) take what the followers' rules add (§9: eyes turn in eyeLook keys, a tongue comes
+    forward in tongueOut); changed in place. The parts not connected to the face's landmarks are
+    the separate ones."""
+    ruled = [followers.eye_look(name) is not None or name.endswith("tongueOut") for name in names]
+    if not len(fit.target_landmarks) or not any(ruled):
         return
     region = fit.target_region
     parts = vertex_parts(len(region.vertices), region.triangles)
@@ -657,7 +659,7 @@ def _tongue_out_of_solved_parts(result, fit, names):
     triangles = region.triangles[separate[region.triangles[:, 0]]]
     face = _face_of(fit) if len(triangles) else None
     if face is not None:
-        result += followers.tongue_out(face, result, names, region.vertices, triangles)
+        result += followers.on_solved_parts(face, result, names, region.vertices, triangles)
 
 
 def _face_of(fit):

@@ -233,33 +233,40 @@ def follow(face, skin_deltas, names, meshes):
     return followings
 
 
-def tongue_out(face, deltas, names, vertices, triangles):
-    """(E, n, 3) what each tongueOut key adds to a tongue among a mesh's separate parts
-    (`triangles` over `vertices`, n) that already move by `deltas` (E, n, 3, the skin's too, in
-    the face's skin numbering): in a target of the source's own base mesh the transfer moves
-    every part, the tongue with the jaw (docs/method.md §7), and this brings it forward as
-    follow() brings a tongue it places (TONGUE_OUT_REACH). Zero elsewhere and in other keys."""
+def on_solved_parts(face, deltas, names, vertices, triangles):
+    """(E, n, 3) what the rules add to a mesh's separate parts (`triangles` over `vertices`, n)
+    that already move by `deltas` (E, n, 3, the skin's too, in the face's skin numbering): in a
+    target of the source's own base mesh the transfer moves every part as the source's moves
+    (docs/method.md §7), and a source's eyes and tongue may not do what ARKit's keys ask (the
+    library's eyeLook keys move the lids only; its tongueOut is made from jawOpen). So an eye the
+    key leaves still turns in its eyeLook keys, and a tongue comes forward in tongueOut
+    (TONGUE_OUT_REACH), as follow() moves the parts it places. Zero elsewhere."""
     deltas = np.asarray(deltas, dtype=np.float64)
-    added = np.zeros_like(deltas)
-    keys = [e for e, name in enumerate(names) if name.endswith("tongueOut")]
     weld, index = _welded(vertices, triangles)
     points, triangles = weld.vertices, weld.triangles()
-    if not keys or not len(triangles):
-        return added
-    mouth = [(points[p.ids], _within(triangles, p.ids), p)
-             for p in (_classified(face, points, ids) for ids in _pieces(points, triangles))
-             if p.kind == MOUTH]
-    _set_mouth_roles(face, mouth)
+    added = np.zeros((len(names), len(points), 3))
+    if not len(triangles):
+        return added[:, index]
     # each welded vertex's motion: that of one of its copies
     copy = np.zeros(len(points), dtype=np.int64)
     copy[index] = np.arange(len(index))
-    forward = np.zeros((len(names), len(points), 3))
-    for _, _, piece in mouth:
+    pieces = [_classified(face, points, ids) for ids in _pieces(points, triangles)]
+    for piece in (p for p in pieces if p.kind == EYE):
+        turn = _eye_motion(face, names, points[piece.ids], piece)
+        left_still = np.linalg.norm(deltas[:, copy[piece.ids]], axis=2).max(axis=1) \
+            < KEY_MIN_MOTION * face.span
+        for e in np.flatnonzero(left_still):
+            added[e, piece.ids] = turn[e]
+    keys = [e for e, name in enumerate(names) if name.endswith("tongueOut")]
+    mouth = [(points[p.ids], _within(triangles, p.ids), p) for p in pieces if p.kind == MOUTH]
+    if keys and mouth:
+        _set_mouth_roles(face, mouth)
+    for _, _, piece in mouth if keys else ():
         tongue = piece.ids[piece.roles == TONGUE]
         for e in keys if len(tongue) else ():
             moved = points[tongue] + deltas[e, copy[tongue]]
-            forward[e, tongue] = _tongue_out(face, deltas[e], moved)
-    return forward[:, index]
+            added[e, tongue] = _tongue_out(face, deltas[e], moved)
+    return added[:, index]
 
 
 def _welded(vertices, triangles):
