@@ -27,9 +27,6 @@ STILL = 1e-4          # x the face object's diagonal: the most a vertex outside 
 EXACT = 1e-5          # x the diagonal: world-space key against the engine's delta (float32 keys)
 LID_DOWN = 0.05       # eye distances: the least the blinking upper lid comes down
 LIP_DOWN = 0.05       # eye distances: the least jawOpen takes the lower lip down
-# Known: where the blink comes down but does not close (measured, not tuned away)
-THIN_LIDS = {"mh_head_lowpoly.glb": "the 485-vertex head's upper lid is one row of vertices: "
-                                    "eyeBlink_L lowers it by about 0.02 eye distances only"}
 
 
 def _select_the_character(objects, face_name):
@@ -102,8 +99,6 @@ def test_generate_arkit_on_a_whole_character(file_name, shared_data, capfd):
     assert _world_key(face_obj, "jawOpen")[lip] @ up < -LIP_DOWN * distance
     blink = _world_key(face_obj, "eyeBlink_L")
     assert blink[lids["left"]] @ up < 0
-    if file_name in THIN_LIDS:
-        pytest.xfail(THIN_LIDS[file_name])
     assert blink[lids["left"]] @ up < -LID_DOWN * distance
     assert abs(blink[lids["right"]] @ up) < 0.5 * abs(blink[lids["left"]] @ up)
 

@@ -239,6 +239,31 @@ def test_a_coarse_lid_row_drops_the_skin_beside_the_edge_as_seen():
     assert em._on_seen_edge(margin, opening, mirrored, 1, mirrored_edge).tolist() == [0, 1, 2, 3, 5]
 
 
+@pytest.mark.parametrize("corners", [((0.15, 0.45), (0.6, 0.45)), ((0.25, 0.3), (0.6, 0.5))])
+def test_corner_landmarks_off_the_opening_give_the_lids_of_its_ends(corners):
+    # a coarse game head's automatic corners can stand on its skin or lids, off the opening's
+    # ends: their line above the opening (no lid seen from it), or rising across it from the
+    # lower lid to the skin above (both lids seen in 49% of the measured columns: the open
+    # height read 0.129 at the outer stations); both eyes moved alike, so the face's axes stay
+    # level. The corners are then the opening's ends, and the lids as with the corners there
+    vertices, triangles, landmarks, prop = flat_face()
+    placed = em.Openings(vertices, triangles, landmarks).lids["eye_left"]
+    moved = dict(landmarks)
+    for side, sign in (("left", 1), ("right", -1)):
+        for end, (x, y) in zip(("inner", "outer"), corners):
+            moved[f"eye_{end}_{side}"] = _grid_index(sign * x, y)
+    lids = em.Openings(vertices, triangles, moved).lids["eye_left"]
+    pixel = 2 * em.VIEW_WIDTH / em.VIEW_PIXELS * 0.4    # two of the eye's view (0.4 wide)
+    assert lids.opening.first == pytest.approx([0.2, 0.35, 0.0], abs=pixel)
+    assert lids.opening.first + lids.opening.width * lids.opening.along \
+        == pytest.approx([0.6, 0.35, 0.0], abs=pixel)
+    assert lids.upper.tolist() == placed.upper.tolist()
+    assert lids.lower.tolist() == placed.lower.tolist()
+    assert lids.rest == pytest.approx(0.1, abs=pixel)
+    blink = measure_flat(upper_lid_down(0.1)[None], ["blink"])["blink"]
+    assert blink["eyelid_gap_left"] == pytest.approx(0.0, abs=1e-9)
+
+
 @pytest.mark.parametrize("fraction", [1.0, 0.5])
 def test_demo_head_upper_lid_moved_down_by_its_middle_open_height(fraction):
     vertices, triangles, names, ids = demo_head_fit_inputs()

@@ -20,6 +20,7 @@ do. The lips are the upper and
 lower lip landmarks, which move with the lips however the mouth is modelled.
 """
 import numpy as np
+from scipy import ndimage
 
 from . import mesh
 from .face_render import Camera, render
@@ -65,6 +66,14 @@ STANDS_OFF = 0.09
 # measures read the rows without it; the rims pull it with the rim (core.rims). Every undecimated
 # shared character and variant keeps within 0.021, the demo head and the library within 0.002.
 OFF_EDGE = 0.04
+# The corner landmarks miss the eye's opening where both lids' edges are seen from their line in
+# fewer than this share of the measured stations' columns: the 485-vertex low-poly head's
+# automatic corners stand on its lids and skin, 0.16-0.45 eye widths off the opening's ends (its
+# right eye's line runs along the upper lid, the lower one out of reach beyond half the opening:
+# 0.43); every shared character, variant, the demo head and the library 0.80-1.0, the remeshed
+# known case and its ICT source 0.74-0.92. Then, or where the landmarks' lids read closed at rest,
+# the corners are the ends of the opening seen from the front (_opening_ends).
+THROUGH = 0.5
 # The lids are looked for within this far of the corners' line, x the corners' distance.
 EYE_REACH = 0.35
 # An edge's image on the source shorter than this share of the edge has collapsed (both ends on
@@ -165,19 +174,21 @@ def _edge_pixel(depth, heights, width):
 
 
 def _seen_margin(vertices, triangles, opening):
-    """(upper ids, lower ids, (upper edge, lower edge), how) of the lid margins as seen from the
-    front: in every pixel column between the corners, going up (down) from the corners' line
-    within EYE_REACH x the width, the vertex nearest the lid's edge (_edge_pixel) where that edge
-    is on the front (not a wall deep in a socket seen through the opening); each edge (k, 2) the
-    columns' stations and the edge's heights there, by station. (None, None, None, why) without
-    two of each."""
+    """(upper ids, lower ids, (upper edge, lower edge), through, how) of the lid margins as seen
+    from the front: in every pixel column between the corners, going up (down) from the corners'
+    line within EYE_REACH x the width, the vertex nearest the lid's edge (_edge_pixel) where that
+    edge is on the front (not a wall deep in a socket seen through the opening); each edge (k, 2)
+    the columns' stations and the edge's heights there, by station; through: the share of the
+    columns within EYE_STATIONS where both lids' edges are seen. (None, None, None, through,
+    why) without two of each."""
     camera, depth, points, triangle = _eye_view(vertices, triangles, opening)
     pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
     lines = camera.ray_origins(pixels.reshape(-1, 2))
     stations = opening.station(lines[:VIEW_PIXELS])          # the first row: one per column
     heights = opening.height(lines).reshape(VIEW_PIXELS, VIEW_PIXELS)
-    found, edges = ([], []), ([], [])
+    found, edges, through = ([], []), ([], []), []
     for column in np.flatnonzero((stations > 0.05) & (stations < 0.95)):
+        seen = 0
         for sign, row, edge_points in ((1, found[0], edges[0]), (-1, found[1], edges[1])):
             height = sign * heights[:, column]
             ahead = np.flatnonzero((height >= 0) & (height <= EYE_REACH * opening.width))
@@ -194,11 +205,43 @@ def _seen_margin(vertices, triangles, opening):
             corners = triangles[triangle[ahead[edge], column]]
             row.append(corners[np.argmin(np.linalg.norm(vertices[corners] - point, axis=1))])
             edge_points.append((stations[column], heights[ahead[edge], column]))
+            seen += 1
+        if EYE_STATIONS[0] <= stations[column] <= EYE_STATIONS[-1]:
+            through.append(seen == 2)
+    through = float(np.mean(through)) if through else 0.0
     upper, lower = (np.unique(np.asarray(row, dtype=np.int64)) for row in found)
     if min(len(upper), len(lower)) < 2:
-        return None, None, None, "no lid edges seen between the eye's corners (no opening in front)"
+        return None, None, None, through, \
+            "no lid edges seen between the eye's corners (no opening in front)"
     edges = tuple(np.asarray(sorted(points)) for points in edges)
-    return upper, lower, edges, "seen from the front"
+    return upper, lower, edges, through, "seen from the front"
+
+
+def _opening_ends(vertices, triangles, opening):
+    """(2, 3) the ends of the eye's opening as seen from the front (the first and the second
+    corner's side), or None where none is seen: the connected stretch of the view with no surface
+    or one more than LID_DEPTH x the eye's width behind the corners' line (the hole or the socket
+    behind the lids) that covers most of the corners' band, its furthest pixels either way along
+    the opening (their middle, within a pixel), at the depth of the corners' line."""
+    camera, depth, points, triangle = _eye_view(vertices, triangles, opening)
+    pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
+    lines = camera.ray_origins(pixels.reshape(-1, 2))
+    stations = opening.station(lines)
+    behind = np.full(len(lines), True)
+    seen = triangle.ravel() >= 0
+    behind[seen] = opening.depth(points.reshape(-1, 3)[seen]) < -LID_DEPTH * opening.width
+    labels, count = ndimage.label(behind.reshape(VIEW_PIXELS, VIEW_PIXELS))
+    labels = labels.ravel()
+    band = (stations >= 0) & (stations <= 1) & \
+        (np.abs(opening.height(lines)) <= EYE_REACH * opening.width)
+    covered = np.bincount(labels[band], minlength=count + 1)[1:]
+    if not covered.any():
+        return None
+    hole = labels == 1 + np.argmax(covered)
+    step = VIEW_WIDTH / VIEW_PIXELS            # a pixel, x the eye's width
+    ends = [lines[hole & (stations <= stations[hole].min() + step)].mean(axis=0),
+            lines[hole & (stations >= stations[hole].max() - step)].mean(axis=0)]
+    return np.stack([end - opening.depth(end[None])[0] * opening.forward for end in ends])
 
 
 def _visible_edge(ids, opening, vertices, sign):
@@ -241,11 +284,28 @@ def row_heights(opening, points, stations):
 class _Lids:
     """An eye's upper and lower lid edges (rows of vertices) and the gap between them at rest,
     at each of EYE_STATIONS. upper_margin, lower_margin: the rows with the skin beside a coarse
-    rim (OFF_EDGE) that the rims pull with it (core.rims)."""
+    rim (OFF_EDGE) that the rims pull with it (core.rims). The corners are the landmarks' unless
+    they miss the opening (THROUGH): then the ends of the opening as seen from the front."""
 
     def __init__(self, vertices, triangles, inner, outer, frame):
-        self.opening = _Opening(inner, outer, frame)
-        upper, lower, edges, self.how = _seen_margin(vertices, triangles, self.opening)
+        self._find(vertices, triangles, _Opening(inner, outer, frame))
+        if self.through < THROUGH or self.rest is None or np.any(self.rest <= 0):
+            opening = self.opening
+            for _ in range(2):      # twice: the second view is centred on the opening
+                ends = _opening_ends(vertices, triangles, opening)
+                if ends is None:
+                    return
+                opening = _Opening(*ends, frame)
+            found = dict(vars(self))
+            self._find(vertices, triangles, opening)
+            if self.rest is None or np.any(self.rest <= 0):      # the ends read no better
+                vars(self).clear()
+                vars(self).update(found)
+
+    def _find(self, vertices, triangles, opening):
+        self.opening = opening
+        upper, lower, self.edges, self.through, self.how = _seen_margin(vertices, triangles,
+                                                                        opening)
         self.rest = None
         if upper is not None:
             self.upper_margin, self.lower_margin = (
@@ -253,7 +313,7 @@ class _Lids:
                 for row, sign in ((upper, 1), (lower, -1)))
             self.upper, self.lower = (
                 _on_seen_edge(row, self.opening, vertices, sign, edge) for row, sign, edge
-                in ((self.upper_margin, 1, edges[0]), (self.lower_margin, -1, edges[1])))
+                in zip((self.upper_margin, self.lower_margin), (1, -1), self.edges))
             self.rest = self.gaps(vertices)
 
     def gaps(self, positions):
