@@ -20,8 +20,7 @@ from functools import lru_cache
 import numpy as np
 
 from ..core import character as core_character
-from ..core.cloning import (CloneSettings, fit_faces, fit_shared, found_landmarks,
-                            transfer_expressions)
+from ..core.cloning import CloneSettings, fit_faces, found_landmarks, transfer_expressions
 from ..core.errors import Cancelled, ExCloneError
 from ..core.expression_measures import measure_clone, summary
 from ..core import data
@@ -376,17 +375,12 @@ def run_engine(source, target, landmarks, clone_settings, transfer=True, progres
             if progress:
                 progress(fraction * (0.8 if transfer else 1.0), message)
 
-        # a target made from the source's base mesh needs no registration (automatic
-        # landmarks only: edited ones ask for a registration that holds them)
-        shared = core_character.shared_vertices(source, target) if landmarks is None else None
         try:
             fit = fit_faces(source.mesh, target_mesh, landmarks=landmarks,
                             source_landmarks=source.automatic_landmarks,
                             settings=clone_settings, progress=fit_progress, face_guide=guide,
-                            fixed_vertices=target.head.fixed) if shared is None else \
-                fit_shared(source.mesh, target_mesh, shared,
-                           source_landmarks=source.automatic_landmarks,
-                           settings=clone_settings, fixed_vertices=target.head.fixed)
+                            fixed_vertices=target.head.fixed,
+                            shared_vertices=core_character.shared_vertices(source, target))
         except ExCloneError as error:
             if target.not_found is None or landmarks is not None:
                 raise

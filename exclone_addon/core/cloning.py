@@ -108,7 +108,7 @@ class Welded:
 
 @limited_threads
 def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings=None,
-              progress=None, face_guide=None, fixed_vertices=None):
+              progress=None, face_guide=None, fixed_vertices=None, shared_vertices=None):
     """Landmarks, registration and correspondence of source onto target (PolyMesh each).
 
     landmarks: None for automatic ones, or {"source": ids, "target": ids} (same length; hard).
@@ -119,17 +119,23 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     coordinates): the automatic landmarks use its frame and are cross-checked with its points.
     fixed_vertices: (k,) target vertex ids (its own numbering) every transfer holds still, e.g.
     the cut of a head taken out of a body (core.character.HeadCut.fixed).
+    shared_vertices: for a target made from the source's base mesh (core.character.
+    shared_vertices), fit_shared's `shared`: with automatic landmarks the fit is fit_shared's
+    (edited landmarks ask for a registration that holds them).
     Raises ExCloneError with a user-facing message on bad input.
     """
     return _fit(_welded_surface(source, "source mesh"), target, landmarks, source_landmarks,
                 _checked_settings(settings), _progress_span(progress, 0.0, 1.0), face_guide,
-                fixed_vertices)
+                fixed_vertices, shared_vertices)
 
 
 def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report,
-         face_guide=None, fixed_vertices=None):
+         face_guide=None, fixed_vertices=None, shared_vertices=None):
     """fit_faces on the welded source (Welded, whole mesh); report(fraction, message) or a
     no-op."""
+    if shared_vertices is not None and landmarks is None:
+        return _fit_shared(source_weld, target_mesh, shared_vertices, source_landmarks, settings,
+                           fixed_vertices)
     stopwatch = _Stopwatch()
     target_weld = _welded_surface(target_mesh, "target mesh")
     source, target = source_weld.surface, target_weld.surface
@@ -441,6 +447,7 @@ def _fit_shared(source_weld, target, shared, source_landmarks, settings, fixed_v
     mapped = vertex_map.valid[target_region.triangles].all(axis=1)
     if not mapped.any():
         raise ExCloneError("the target shares no triangle with the source")
+    weights = mapped.astype(np.float64)
     none = np.zeros(0, dtype=np.int64)
     pairs = Correspondence(none, none, np.zeros(0)).matrix(len(target_region.triangles),
                                                           len(source_surface.triangles))
@@ -449,14 +456,13 @@ def _fit_shared(source_weld, target, shared, source_landmarks, settings, fixed_v
         source=source_surface, target=target, welded_target=target_weld, source_weld=source_weld,
         target_region=target_region, source_region=source_surface.triangles,
         rotation=rotation, scale=scale, aligned_source=aligned,
-        vertex_map=vertex_map, mapped=mapped, pairs=pairs, weights=mapped.astype(np.float64),
+        vertex_map=vertex_map, mapped=mapped, pairs=pairs, weights=weights,
         formulation=settings.formulation, source_landmarks=source_ids,
         target_landmarks=target_ids, landmark_names=names,
         registered_source=registered[source_weld.index],
         timings={"correspondence": time.perf_counter() - start},
         quality={"shared_vertices": int(has.sum()), "landmark_count": len(names),
-                 **_correspondence_quality(mapped, mapped.astype(np.float64), scale,
-                                           target_region.diagonal)},
+                 **_correspondence_quality(mapped, weights, scale, target_region.diagonal)},
         fixed_vertices=_welded_ids(target_weld, fixed_vertices))
 
 
@@ -590,24 +596,18 @@ def _in_own_numbering(result, index):
 def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
                       source_landmarks=None, settings=None, progress=None, face_guide=None,
                       fixed_vertices=None, shared_vertices=None):
-    """Clone every source expression onto the target: fit_faces (fit_shared when
-    shared_vertices are given), then transfer_expressions.
+    """Clone every source expression onto the target: fit_faces, then transfer_expressions.
 
     source, target: PolyMesh. source_deltas: (E, n_source, 3). names: E strings.
-    landmarks, source_landmarks, progress, face_guide, fixed_vertices: as fit_faces.
-    shared_vertices: as fit_shared's `shared` (core.character.shared_vertices), for a target
-    made from the source's base mesh; ignored when landmarks are given.
+    landmarks, source_landmarks, progress, face_guide, fixed_vertices, shared_vertices: as
+    fit_faces.
     Raises ExCloneError with a user-facing message on bad input.
     """
     settings = _checked_settings(settings)
     source_weld = _welded_surface(source, "source mesh")
     _checked_deltas(source_deltas, names, source_weld)   # before the long part
-    if shared_vertices is not None and landmarks is None:
-        fit = _fit_shared(source_weld, target, shared_vertices, source_landmarks, settings,
-                          fixed_vertices)
-    else:
-        fit = _fit(source_weld, target, landmarks, source_landmarks, settings,
-                   _progress_span(progress, 0.0, 0.8), face_guide, fixed_vertices)
+    fit = _fit(source_weld, target, landmarks, source_landmarks, settings,
+               _progress_span(progress, 0.0, 0.8), face_guide, fixed_vertices, shared_vertices)
     if progress:
         progress(0.8, "transfer")
     result = transfer_expressions(fit, source_deltas, names)
@@ -654,8 +654,7 @@ def _rules_on_solved_parts(result, fit, names):
     if not len(fit.target_landmarks) or not any(ruled):
         return
     region = fit.target_region
-    parts = vertex_parts(len(region.vertices), region.triangles)
-    separate = ~np.isin(parts, parts[fit.welded_target.index[fit.target_landmarks]])
+    separate = ~np.isin(region.parts, region.parts[fit.welded_target.index[fit.target_landmarks]])
     triangles = region.triangles[separate[region.triangles[:, 0]]]
     face = _face_of(fit) if len(triangles) else None
     if face is not None:
