@@ -216,15 +216,10 @@ def follow(face, skin_deltas, names, meshes):
     the face's skin vertices. The teeth of every mesh together set the bite plane (upper and
     lower rows may be objects of their own)."""
     skin_deltas = np.asarray(skin_deltas, dtype=np.float64)
-    # copies split at UV seams (glTF, FBX) are one vertex for the rules, and move alike
-    welds = [_welded(v, t) for v, t in meshes]
-    meshes = [(weld.vertices, weld.triangles()) for weld, _ in welds]
-    pieces = [[_classified(face, v, ids) for ids in _pieces(v, t)] for v, t in meshes]
-    mouth = [(v[p.ids], _within(t, p.ids), p) for (v, t), mine in zip(meshes, pieces)
-             for p in mine if p.kind == MOUTH]
-    _set_mouth_roles(face, mouth)
+    meshes = _welded_pieces(face, meshes)
+    _set_roles(face, meshes)
     followings = []
-    for (vertices, triangles), mine, (_, index) in zip(meshes, pieces, welds):
+    for vertices, triangles, index, mine in meshes:
         deltas = np.zeros((len(names), len(vertices), 3))
         for piece in mine:
             points = vertices[piece.ids]
@@ -249,31 +244,50 @@ def on_solved_parts(face, deltas, names, vertices, triangles):
     key leaves still turns in its eyeLook keys, and a tongue comes forward in tongueOut
     (TONGUE_OUT_REACH), as follow() moves the parts it places. Zero elsewhere."""
     deltas = np.asarray(deltas, dtype=np.float64)
-    weld, index = _welded(vertices, triangles)
-    points, triangles = weld.vertices, weld.triangles()
-    added = np.zeros((len(names), len(points), 3))
     if not len(triangles):
-        return added[:, index]
+        return np.zeros((len(names), len(vertices), 3))
+    meshes = _welded_pieces(face, [(vertices, triangles)])
+    points, triangles, index, pieces = meshes[0]
+    added = np.zeros((len(names), len(points), 3))
     # each welded vertex's motion: that of one of its copies
     copy = np.zeros(len(points), dtype=np.int64)
     copy[index] = np.arange(len(index))
-    pieces = [_classified(face, points, ids) for ids in _pieces(points, triangles)]
     for piece in (p for p in pieces if p.kind == EYE):
         turn = _eye_motion(face, names, points[piece.ids], piece)
         left_still = np.linalg.norm(deltas[:, copy[piece.ids]], axis=2).max(axis=1) \
             < KEY_MIN_MOTION * face.span
         for e in np.flatnonzero(left_still):
             added[e, piece.ids] = turn[e]
-    keys = [e for e, name in enumerate(names) if name.endswith("tongueOut")]
-    mouth = [(points[p.ids], _within(triangles, p.ids), p) for p in pieces if p.kind == MOUTH]
-    if keys and mouth:
-        _set_mouth_roles(face, mouth)
-    for _, _, piece in mouth if keys else ():
+    mouth = [p for p in pieces if p.kind == MOUTH]
+    if not mouth or not any(name.endswith("tongueOut") for name in names):
+        return added[:, index]
+    _set_roles(face, meshes)
+    for piece in mouth:
         tongue = piece.ids[piece.roles == TONGUE]
-        for e in keys if len(tongue) else ():
-            moved = points[tongue] + deltas[e, copy[tongue]]
-            added[e, tongue] = _tongue_out(face, deltas[e], moved)
+        added[:, tongue] = _tongue_out_motion(face, deltas, names, points[tongue],
+                                              deltas[:, copy[tongue]])
     return added[:, index]
+
+
+def _welded_pieces(face, meshes):
+    """Each mesh (vertices, triangles) at rest welded (copies split at UV seams, glTF and FBX,
+    are one vertex for the rules, and move alike) and cut into its classified pieces:
+    [(vertices, triangles, the welded id of each of its own vertices, pieces)]."""
+    welded_meshes = []
+    for vertices, triangles in meshes:
+        weld, index = _welded(vertices, triangles)
+        points, joined = weld.vertices, weld.triangles()
+        welded_meshes.append((points, joined, index, [_classified(face, points, ids)
+                                                      for ids in _pieces(points, joined)]))
+    return welded_meshes
+
+
+def _set_roles(face, meshes):
+    """The roles of the mouth pieces of every mesh (_welded_pieces): the teeth of all of them
+    together set the bite plane (upper and lower rows may be objects of their own)."""
+    _set_mouth_roles(face, [(vertices[p.ids], _within(triangles, p.ids), p)
+                            for vertices, triangles, _, pieces in meshes
+                            for p in pieces if p.kind == MOUTH])
 
 
 def _welded(vertices, triangles):
@@ -415,7 +429,8 @@ def _skin_motion(face, skin_deltas, points, parts):
         rooted = mine[distance[mine] <= distance[mine].min() + ROOT_GAP * face.span]
         tree = cKDTree(points[rooted])
         nearest_root[mine] = tree.query(points[mine])[0]
-        for i, near in zip(mine, tree.query_ball_point(points[mine], nearest_root[mine] + 3 * blend)):
+        reach = nearest_root[mine] + 3 * blend
+        for i, near in zip(mine, tree.query_ball_point(points[mine], reach)):
             point.append(np.full(len(near), i))
             root.append(rooted[near])
     point, root = np.concatenate(point), np.concatenate(root)
@@ -605,13 +620,23 @@ def _mouth_motion(face, skin_deltas, names, points, roles):
         return motion
     patch = _jaw_patch(face)
     rest = face.skin.vertices[patch]
-    for e, name in enumerate(names):
-        if len(patch) >= 3:
+    if len(patch) >= 3:
+        for e in range(len(names)):
             motion[e, jawed] = _jaw_motion(face, rest, skin_deltas[e, patch], points[jawed])
-        tongue = roles == TONGUE
-        if name.endswith("tongueOut") and tongue.any():
-            motion[e, tongue] += _tongue_out(face, skin_deltas[e], points[tongue] + motion[e, tongue])
+    tongue = roles == TONGUE
+    motion[:, tongue] += _tongue_out_motion(face, skin_deltas, names, points[tongue],
+                                            motion[:, tongue])
     return motion
+
+
+def _tongue_out_motion(face, skin_deltas, names, tongue, moved):
+    """(E, k, 3) what the tongueOut keys add to a tongue (its points `tongue` at rest, moved by
+    `moved` (E, k, 3) already, the jaw opened): _tongue_out's translation; zero in other keys."""
+    added = np.zeros_like(moved)
+    for e, name in enumerate(names):
+        if name.endswith("tongueOut") and len(tongue):
+            added[e] = _tongue_out(face, skin_deltas[e], tongue + moved[e])
+    return added
 
 
 def _tongue_out(face, skin_deltas, tongue):
