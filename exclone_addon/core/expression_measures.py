@@ -129,8 +129,9 @@ class _Opening:
 
 def _eye_view(vertices, triangles, opening):
     """The eye seen from the front (face_render, orthographic along the face's forward):
-    (camera, (P, P) depth of each pixel along forward (-inf where no surface), (P, P, 3) the
-    surface point seen, (P, P) its triangle (-1 for none)). Only the triangles within VIEW_DEPTH
+    ((P * P, 3) each pixel's ray origin, row by row, (P, P) depth of each pixel along forward
+    (-inf where no surface), (P, P, 3) the surface point seen, (P, P) its triangle (-1 for
+    none)). Only the triangles within VIEW_DEPTH
     eye widths behind the corners are drawn: what lies further back (the back of the head seen
     through a hole) reads as the opening all the same, and costs most of the drawing."""
     centre = opening.first + 0.5 * opening.width * opening.along + 0.5 * opening.rise * opening.up
@@ -146,7 +147,8 @@ def _eye_view(vertices, triangles, opening):
     triangle = np.where(triangle >= 0, drawn[triangle], -1)
     depth = np.where(triangle >= 0, (points - centre) @ opening.forward, -np.inf)
     shape = (VIEW_PIXELS, VIEW_PIXELS)
-    return camera, depth.reshape(shape), points.reshape(shape + (3,)), triangle.reshape(shape)
+    return (camera.ray_origins(pixels.reshape(-1, 2)), depth.reshape(shape),
+            points.reshape(shape + (3,)), triangle.reshape(shape))
 
 
 def _edge_pixel(depth, heights, width):
@@ -181,9 +183,7 @@ def _seen_margin(vertices, triangles, opening):
     the columns' stations and the edge's heights there, by station; through: the share of the
     columns within EYE_STATIONS where both lids' edges are seen. (None, None, None, through,
     why) without two of each."""
-    camera, depth, points, triangle = _eye_view(vertices, triangles, opening)
-    pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
-    lines = camera.ray_origins(pixels.reshape(-1, 2))
+    lines, depth, points, triangle = _eye_view(vertices, triangles, opening)
     stations = opening.station(lines[:VIEW_PIXELS])          # the first row: one per column
     heights = opening.height(lines).reshape(VIEW_PIXELS, VIEW_PIXELS)
     found, edges, through = ([], []), ([], []), []
@@ -223,9 +223,7 @@ def _opening_ends(vertices, triangles, opening):
     or one more than LID_DEPTH x the eye's width behind the corners' line (the hole or the socket
     behind the lids) that covers most of the corners' band, its furthest pixels either way along
     the opening (their middle, within a pixel), at the depth of the corners' line."""
-    camera, depth, points, triangle = _eye_view(vertices, triangles, opening)
-    pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
-    lines = camera.ray_origins(pixels.reshape(-1, 2))
+    lines, depth, points, triangle = _eye_view(vertices, triangles, opening)
     stations = opening.station(lines)
     behind = np.full(len(lines), True)
     seen = triangle.ravel() >= 0
