@@ -44,6 +44,7 @@ FACING_COSINE = 0.5
 POSE_DEGREE = 3
 POSE_FEATURES = tuple((a, total - a) for total in range(1, POSE_DEGREE + 1)
                       for a in range(total, -1, -1))
+_POWERS_X, _POWERS_Y = np.array(POSE_FEATURES).T
 
 # Model (canonical face: +Y up, looking along +Z) seen frontally by the camera: turned half a
 # turn about x, so the model's up is the image's up and its face looks into the camera.
@@ -133,7 +134,7 @@ class ShapeModel:
         """(T, F) POSE_FEATURES of directions to the camera (T, 3) in the model's axes."""
         v = np.asarray(directions, dtype=np.float64)
         v = v / np.linalg.norm(v, axis=1, keepdims=True)
-        return np.column_stack([v[:, 0] ** a * v[:, 1] ** b for a, b in POSE_FEATURES])
+        return v[:, :1] ** _POWERS_X * v[:, 1:2] ** _POWERS_Y
 
     def pose_offset(self, rotation, translation, jacobian=False):
         """(n, 3) each point's slide at a pose (model -> camera), in model space; None without
@@ -141,25 +142,25 @@ class ShapeModel:
         turning on the left as in ShapeFitter)."""
         if self.pose_offsets is None:
             return None
-        inverse = rotation.inv()
-        to_camera = -inverse.apply(translation) - self.pose_centre
+        r_t = rotation.as_matrix().T
+        to_camera = -r_t @ translation - self.pose_centre
         length = np.linalg.norm(to_camera)
         v = to_camera / length
         x, y = v[0], v[1]
-        features = self.pose_features(v[None])
+        features = self.pose_features(v[None])[0]
+        offsets = self.pose_offsets.reshape(len(features), -1)       # (F, 3n)
         if not jacobian:
-            return np.tensordot(features[0], self.pose_offsets, axes=1)
+            return (features @ offsets).reshape(-1, 3)
         # d features / d v (F, 3); d v / d to_camera; d to_camera / d [omega, t]: turning by
         # exp(w) adds -R^T [t]x w, moving by dt adds -R^T dt
-        by_v = np.array([[a * x ** max(a - 1, 0) * y ** b, b * x ** a * y ** max(b - 1, 0), 0.0]
-                         for a, b in POSE_FEATURES])
+        by_v = np.zeros((len(features), 3))
+        by_v[:, 0] = _POWERS_X * x ** np.maximum(_POWERS_X - 1, 0) * y ** _POWERS_Y
+        by_v[:, 1] = _POWERS_Y * x ** _POWERS_X * y ** np.maximum(_POWERS_Y - 1, 0)
         by_direction = by_v @ (np.eye(3) - np.outer(v, v)) / length
-        r_t = inverse.as_matrix()
         by_pose = np.hstack((-r_t @ _skew_rows(translation[None])[0], -r_t))     # (3, 6)
         # the slide and its derivative in one (7, F) @ (F, 3n) product
-        both = np.tensordot(np.vstack((features, (by_direction @ by_pose).T)), self.pose_offsets,
-                            axes=(1, 0))
-        return both[0], both[1:].transpose(1, 2, 0)
+        both = np.vstack((features, (by_direction @ by_pose).T)) @ offsets
+        return both[0].reshape(-1, 3), both[1:].reshape(6, -1, 3).transpose(1, 2, 0)
 
     def facing(self, shape, rotation, translation):
         """(n,) cosine between each point's outward normal and the direction to the camera
@@ -224,10 +225,11 @@ class FitResult:
 
 def _skew_rows(v):
     """Cross-product matrices [v]x for each row of v: (n, 3) -> (n, 3, 3)."""
-    z = np.zeros(len(v))
-    return np.stack([np.stack([z, -v[:, 2], v[:, 1]], axis=1),
-                     np.stack([v[:, 2], z, -v[:, 0]], axis=1),
-                     np.stack([-v[:, 1], v[:, 0], z], axis=1)], axis=1)
+    skew = np.zeros((len(v), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2] = -v[:, 2], v[:, 1]
+    skew[:, 1, 0], skew[:, 1, 2] = v[:, 2], -v[:, 0]
+    skew[:, 2, 0], skew[:, 2, 1] = -v[:, 1], v[:, 0]
+    return skew
 
 
 def tukey_weights(r, c):
@@ -387,7 +389,9 @@ class ShapeFitter:
         pose[:, :, :3] = -_skew_rows(y - t)
         pose[:, :, 3:] = np.eye(3)
         if slide_jacobian is not None:
-            pose += matrix @ slide_jacobian
+            # R @ each point's (3, 6) block, as one (6n, 3) @ (3, 3) product
+            turned = slide_jacobian.transpose(2, 0, 1).reshape(-1, 3) @ matrix.T
+            pose += turned.reshape(6, n, 3).transpose(1, 2, 0)
         projection = self.camera.jacobian(y)
         jac = np.empty((n, 2, 6 + self._point_modes.shape[2]))
         jac[:, :, :6] = projection @ pose
