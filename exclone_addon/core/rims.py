@@ -40,11 +40,16 @@ from . import expression_measures
 from .expression_measures import EYE_STATIONS, row_heights
 from .transfer import EXPRESSIONS_PER_BLOCK, as_columns, as_rows, blocks
 
-# Weight of a rim vertex's goal per unit of squared target edge length. From the source's rows:
-# smooth goals, held to within a percent of the open height (at 100, 7% of the lid's travel was
-# left, 19% of the male body's open height at the inner station instead of 12%). From the vertex
-# map: soft enough that a rim vertex with a poor image cannot tear the lid.
-STATION_WEIGHT = 1000.0
+# Weight of a rim vertex's goal per unit of squared target edge length (the region's mean). From
+# the source's rows: smooth goals, met up to a floating head's common translation (the measured
+# gaps within 0.2% of the open height of the goals' own on the low-poly head, 0.1% on the male
+# body held at the neck). At 1000 the transfer's gradients held the rims short of them: on the
+# 485-vertex low-poly head, whose gap match raises its lower row's bend 0.10 eye widths (30% of
+# the open height) where the source's lower lid stays still, by up to 0.014 eye widths (13.3% of
+# the open height left at the inner station where the goals leave 9.1%); on the dense heads by
+# less (the male body 9.3% for 8.0%); at 100, 19%. From the vertex map: soft enough that a rim
+# vertex with a poor image cannot tear the lid.
+STATION_WEIGHT = 100000.0
 MAPPED_WEIGHT = 100.0
 # The target's rows are smooth enough for station goals unless two vertices of a row or more
 # stand further than this share of the eye's mean open height inside the row's hull (towards the
