@@ -42,7 +42,10 @@ BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this shar
 # 2.94, 2.15 / 2.73, 3.13 / 3.13, 2.0 / 2.0, 3.42 / 3.36. Not the issue's 2.5 on three: the
 # library's corner strip stretches 7-37x and the mouth corners meet only to 0.05-0.26 mouth
 # widths, so a corner edge's figure rests on which side of the strip its images fall, and each
-# figure is one draw from a wide spread (docs/method.md §7, "At the mouth corners").
+# figure is one draw from a wide spread (docs/method.md §7, "At the mouth corners", which also
+# checks the measure: the worst edges' images lie within 0.03 source mouth widths of triangles
+# stretched over 2.5x, yet a direction-free reference would pass a straddling image, so the
+# edge's own image stays the reference; and lists the goal caps and weights tried and not kept).
 REACHED = {
     "mh_male_body.blend": ("Body", 2.94, 4),
     "mh_child_body_expr.blend": ("Body", 2.81, 1),
