@@ -111,6 +111,8 @@ def machine():
     return {"cpus": os.cpu_count(), "python": platform.python_version(),
             "numpy": np.__version__, "opencv": cv2.__version__,
             "blender": bpy.app.version_string, "opencv_threads": cv2.getNumThreads(),
+            # other work on the machine at the end of the run (the step's wall clock grows with it)
+            "load_average_1_5_15_min": [round(load, 2) for load in os.getloadavg()],
             "blas_threads": {name: os.environ.get(name) for name in
                              ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS")}}
 

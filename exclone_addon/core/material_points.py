@@ -75,7 +75,8 @@ class MaterialPoints:
         self._model = model
         self._camera = fitter.camera
         self._min_scale_px = fitter.min_scale_px
-        self._point_modes = np.ascontiguousarray(model.modes.transpose(1, 2, 0))   # (n, 3, K)
+        # the chosen points' modes (m, 3, K)
+        self._modes = np.ascontiguousarray(model.modes[:, self.indices].transpose(1, 2, 0))
         self._gray = gray
         self.points = fit.points2d[self.indices].astype(np.float32)
 
@@ -107,8 +108,8 @@ class MaterialPoints:
         linear in the parameters at a fixed pose; FaceMesh's gradient there is nought). The
         points then move PULL of the way to where `fit` puts them."""
         rotation, matrix = fit.rotation, fit.rotation.as_matrix()
-        modes = self._point_modes[self.indices]
-        material = self.located + np.einsum("nik,k->ni", modes, fit.params)
+        modes = self._modes
+        material = self.located + modes @ fit.params
         anchor = self._camera.project(rotation.apply(material) + fit.translation)
         if tracked is None:
             tracked = np.full(anchor.shape, np.nan)
