@@ -5,8 +5,10 @@ Works for a head or a whole character (its objects' world-space meshes concatena
 orientation and units:
 1. Search: orthographic renders of the whole mesh along its 3 principal axes both ways and the
    8 diagonals between them (a face turned anywhere is within 55 degrees of one of the 14; the
-   axes first, shortest first: most characters face along one, a body or a mask along its
-   thinnest), image up along the longest axis, each turned by 4 rolls of 90 degrees; BlazeFace
+   axes first: most characters face along one, a body or a mask along its thinnest, a head
+   along its depth; the axis its mirror symmetry is across, left to right, last: no face looks
+   along it, and on a head it is the thinnest), image up along the longest axis, each turned by
+   4 rolls of 90 degrees; BlazeFace
    runs on the whole image and on a close crop of the silhouette's top (on a whole-body view
    the face is a few dozen pixels: the detector needs it closer). A body's longest axis is its
    height, so one roll has its head at the top. A view whose best detection is confident is
@@ -26,16 +28,19 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from . import data, face_models
 from .errors import ExCloneError
 from .face_render import Camera, Render, render
 from .mesh import PolyMesh, triangle_areas, vertex_normals, vertex_parts, welded
+from .orientation import surface_samples
 
 RENDER_SIZE = 512
-# Whole-mesh views, as coefficients of the mesh's principal axes (longest first): the 6 axis
-# directions first (the shortest axis both ways first), then the 8 diagonals.
+# Whole-mesh views, as coefficients of three axes (the mesh's principal axes in the order of
+# _search_axes): the 6 axis directions first (the third axis both ways first), then the 8
+# diagonals.
 SEARCH_DIRECTIONS = (np.repeat(np.eye(3)[::-1], 2, axis=0) * np.tile([[1], [-1]], (3, 1)),
                      np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T / np.sqrt(3.0))
 # Share of the silhouette's height taken as the close crop of its top: a standing body's head
@@ -47,6 +52,8 @@ CANDIDATES = 4
 # views are not rendered if it passes); the others wait for the whole search's ranking.
 CONFIDENT = 0.8
 REFINEMENTS = 2
+# Surface points mirrored to find the axis the mesh is symmetric across (_search_axes).
+SYMMETRY_SAMPLES = 3000
 # Acceptance on the close render: FaceMesh's presence and BlazeFace's score there. Measured:
 # faces (the shared heads, bodies, ICT faces) re-detect at 0.87-0.95 with presence 1.000; the
 # best non-face that got that far (the back of a head) re-detected at 0.59, presence 0.19.
@@ -137,11 +144,12 @@ def find_face(vertices, triangles):
     normals = _shading_normals(vertices, triangles)
     models = _Models()
     axes = _principal_axes(vertices, triangles)
+    search_axes = _search_axes(vertices, triangles, axes)
     # the checks on the close render are strict: the first candidate passing them is it
     for directions in SEARCH_DIRECTIONS:
         candidates, tried = [], []
-        for view_candidates in _search(vertices, triangles, normals, models, directions @ axes,
-                                       axes[0]):
+        for view_candidates in _search(vertices, triangles, normals, models,
+                                       directions @ search_axes, axes[0]):
             candidates += view_candidates
             best = max(view_candidates, key=lambda c: c.score, default=None)
             if best is not None and best.score >= CONFIDENT:
@@ -174,6 +182,21 @@ def _principal_axes(vertices, triangles):
     spread = centres - weights @ centres
     _, vectors = np.linalg.eigh((spread * weights[:, None]).T @ spread)
     return vectors[:, ::-1].T
+
+
+def _search_axes(vertices, triangles, axes):
+    """The principal axes `axes` (rows, longest first) as SEARCH_DIRECTIONS takes them (the
+    third row's views first, the first row's last): first the axis the mesh is mirror-symmetric
+    across (mirrored through its centre across it, the surface lands on itself best: its left to
+    right), then the other two, longest first. A face looks along one of those two: a head along
+    its depth (its width, the thinnest, is left to right), a body or a mask along its thinnest."""
+    samples, _ = surface_samples(vertices, triangles, count=SYMMETRY_SAMPLES)
+    centre, tree = samples.mean(axis=0), cKDTree(samples)
+    mismatch = [tree.query(samples - 2.0 * ((samples - centre) @ axis)[:, None] * axis)[0].mean()
+                for axis in axes]
+    across = int(np.argmin(mismatch))
+    others = [k for k in range(3) if k != across]           # longest first
+    return axes[[across] + others]
 
 
 def _whole_view(vertices, direction, longest):
