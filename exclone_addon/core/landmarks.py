@@ -60,6 +60,13 @@ def plane_section(points, triangles, axis, value):
     return np.take_along_axis(hits, order[..., None], axis=1)
 
 
+def _spanning(points, triangles, axis, low, high):
+    """The triangles that reach into low <= points[:, axis] <= high: every triangle a cut
+    (plane_section) within that band can cross, found once for a series of cuts."""
+    values = points[triangles, axis]
+    return triangles[(values.max(axis=1) >= low) & (values.min(axis=1) <= high)]
+
+
 def _profile(segments, walk_axis, bin_size):
     """Front envelope (max z) of section segments sampled along `walk_axis`.
 
@@ -159,6 +166,7 @@ def _opening_end(q, triangles, start, direction, near, far, heights, bin_size, c
     """Where an opening ends walking along x from x = start in `direction`: the _first_rise on
     each horizontal cut at `heights`, the furthest of those in `direction` (cuts above or below
     the opening have none), or None."""
+    triangles = _spanning(q, triangles, 1, heights.min(), heights.max())
     ends = [_first_rise(_profile(plane_section(q, triangles, 1, height), 0, bin_size), start,
                         direction, near, far, cliff) for height in heights]
     ends = [end for end in ends if end is not None]
@@ -284,8 +292,9 @@ def _beside_the_nose(q, front_tris, skin_tris, tip, bridge, diag):
     nose_length = bridge[1] - tip[1]
     bin_size = BIN * diag
     # the inner corners sit at or somewhat below the bridge: cuts at several heights
-    eye_cuts = [_profile(plane_section(q, front_tris, 1, bridge[1] - k * nose_length), 0, bin_size)
-                for k in np.linspace(0.0, 0.5, 21)]
+    heights = bridge[1] - nose_length * np.linspace(0.0, 0.5, 21)
+    band = _spanning(q, front_tris, 1, heights.min(), heights.max())
+    eye_cuts = [_profile(plane_section(q, band, 1, height), 0, bin_size) for height in heights]
     # Alar creases: just below the tip's height, where a cut leaves the nose wing for the
     # cheek (not the nostril beside the columella, nearer the midline).
     alar = _profile(plane_section(q, front_tris, 1, tip[1] - 0.1 * nose_length), 0, bin_size)
