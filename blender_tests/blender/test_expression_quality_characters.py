@@ -135,15 +135,13 @@ def test_blink_closes_on_a_decimated_head(shared_data):
     both rows (where the lids meet) and took the vertex map's goals (its five-vertex rows read
     rough against a parabola): 83% / 63% left open in .venv / .venv313. Judged by their deepest
     notch its rows take the station goals, the vertex on both rows both goals (rims._Correction
-    sums them): 9.99% / 10.05%, reached with a margin (the inner station; the bar at the others)."""
+    sums them): 9.99% / 10.05% at the inner station; with the goals met (rims.STATION_WEIGHT)
+    the lids meet, -1.4% / -1.5% (just past each other), the right eye 4.0% / 3.9%."""
     found = measured("mh_stylised_head.blend", decimated=True)
-    row = found["eyeBlink_R"]
-    assert row["eyelid_gap_right"] <= BLINK_BAR, row
-    assert abs(row["eyelid_gap_left"] - 1.0) <= OTHER_EYE, row
-    row = found["eyeBlink_L"]
-    assert row["eyelid_gap_left"] <= 0.11, row
-    assert max(row["eyelid_gap_left_stations"][1:]) <= BLINK_BAR, row
-    assert abs(row["eyelid_gap_right"] - 1.0) <= OTHER_EYE, row
+    for closing, other in (("right", "left"), ("left", "right")):
+        row = found[f"eyeBlink_{closing[0].upper()}"]
+        assert row[f"eyelid_gap_{closing}"] <= BLINK_BAR, row
+        assert abs(row[f"eyelid_gap_{other}"] - 1.0) <= OTHER_EYE, row
 
 
 def test_blinks_close_on_a_decimated_triangulated_body(shared_data):
@@ -156,14 +154,14 @@ def test_blinks_close_on_a_decimated_triangulated_body(shared_data):
     (.venv / .venv313), the upper row 51-56% below the lower at the outer one. Now the measured
     rows leave that skin out (expression_measures.OFF_EDGE), the rows are judged by their deepest
     notch (rims.ROUGH) and the station goals pull rim and skin: 1.1% (both venvs), the lids
-    crossing by 28% at most. Reached, not the bar: the right eye (9.95% / 10.08% before and after),
+    crossing by 28% at most; with the goals met (rims.STATION_WEIGHT) 3.1%. The right eye,
     whose upper edge as seen rises into a fold at the outer corner (a notch of 0.29 of the open
-    height: judged rough, the vertex map's goals); the same body exported as .fbx keeps station
-    goals there (9.8%, docs/method.md §8)."""
+    height: judged rough, the vertex map's goals), left 9.95% / 10.08%; now 6.0% (both venvs;
+    the same body exported as .fbx keeps station goals there, docs/method.md §8)."""
     found = measured("mh_male_body.blend", decimated=True, triangulated=True)
     left, right = found["eyeBlink_L"], found["eyeBlink_R"]
     assert left["eyelid_gap_left"] <= BLINK_BAR, left
-    assert right["eyelid_gap_right"] <= 0.11, right
+    assert right["eyelid_gap_right"] <= BLINK_BAR, right
     assert abs(left["eyelid_gap_right"] - 1.0) <= OTHER_EYE, left
     assert abs(right["eyelid_gap_left"] - 1.0) <= OTHER_EYE, right
 
