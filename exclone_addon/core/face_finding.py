@@ -8,11 +8,11 @@ orientation and units:
    axes first: most characters face along one, a body or a mask along its thinnest, a head
    along its depth; the axis its mirror symmetry is across, left to right, last: no face looks
    along it, and on a head it is the thinnest), image up along the longest axis, each turned by
-   4 rolls of 90 degrees; BlazeFace
-   runs on the whole image and on a close crop of the silhouette's top (on a whole-body view
-   the face is a few dozen pixels: the detector needs it closer). A body's longest axis is its
-   height, so one roll has its head at the top. A view whose best detection is confident is
-   checked (2.) at once, and the search stops there if it passes.
+   4 rolls of 90 degrees; BlazeFace runs on the whole image and on a close crop of the
+   silhouette's top (on a whole-body view the face is a few dozen pixels: the detector needs it
+   closer). A body's longest axis is its height, so one roll has its head at the top. A view
+   whose best detection is confident is checked (2.) at once, and the search stops there if it
+   passes.
 2. Check and refine the best detections: FaceMesh on the view, its points back onto the surface
    through the render's triangle-id buffer, a frame from them (the rotation that lays MediaPipe's
    canonical face onto them), then a close render straight at the face along that frame, detected
