@@ -230,7 +230,7 @@ def follow(face, skin_deltas, names, meshes):
                 deltas[:, piece.ids] = _skin_motion(face, skin_deltas, points, parts)
             elif piece.kind == MOUTH:
                 deltas[:, piece.ids] = _mouth_motion(face, skin_deltas, names, points,
-                                                     piece.roles)
+                                                     piece.roles, _within(triangles, piece.ids))
         followings.append(Following(deltas[:, index], mine))
     return followings
 
@@ -263,9 +263,9 @@ def on_solved_parts(face, deltas, names, vertices, triangles):
         return added[:, index]
     _set_roles(face, meshes)
     for piece in mouth:
-        tongue = piece.ids[piece.roles == TONGUE]
-        added[:, tongue] = _tongue_out_motion(face, deltas, names, points[tongue],
-                                              deltas[:, copy[tongue]])
+        added[:, piece.ids] = _tongue_out_motion(face, deltas, names, points[piece.ids],
+                                                 piece.roles, _within(triangles, piece.ids),
+                                                 deltas[:, copy[piece.ids]])
     return added[:, index]
 
 
@@ -611,9 +611,9 @@ def _is_tongue(face, local):
     return len(midline) > 1 and np.ptp(midline[:, 2]) > TONGUE_MIDLINE[1] * depth
 
 
-def _mouth_motion(face, skin_deltas, names, points, roles):
+def _mouth_motion(face, skin_deltas, names, points, roles, triangles):
     """(E, m, 3): upper row still, lower row and tongue with the jaw, the tongue forward in
-    tongueOut."""
+    tongueOut (the piece's `triangles` numbered as its points)."""
     motion = np.zeros((len(names), len(points), 3))
     jawed = roles != UPPER
     if not jawed.any():
@@ -623,20 +623,44 @@ def _mouth_motion(face, skin_deltas, names, points, roles):
     if len(patch) >= 3:
         for e in range(len(names)):
             motion[e, jawed] = _jaw_motion(face, rest, skin_deltas[e, patch], points[jawed])
-    tongue = roles == TONGUE
-    motion[:, tongue] += _tongue_out_motion(face, skin_deltas, names, points[tongue],
-                                            motion[:, tongue])
+    motion += _tongue_out_motion(face, skin_deltas, names, points, roles, triangles, motion)
     return motion
 
 
-def _tongue_out_motion(face, skin_deltas, names, tongue, moved):
-    """(E, k, 3) what the tongueOut keys add to a tongue (its points `tongue` at rest, moved by
-    `moved` (E, k, 3) already, the jaw opened): _tongue_out's translation; zero in other keys."""
+def _tongue_out_motion(face, skin_deltas, names, points, roles, triangles, moved):
+    """(E, m, 3) what the tongueOut keys add to a mouth piece (its points at rest, their roles,
+    its triangles; moved by `moved` (E, m, 3) already, the jaw opened): the tongue
+    _tongue_out's translation, the rest of the piece that translation times _tongue_weights;
+    zero in other keys."""
     added = np.zeros_like(moved)
+    tongue = roles == TONGUE
+    if not tongue.any():
+        return added
+    weights = _tongue_weights(face, points, roles, triangles)
     for e, name in enumerate(names):
-        if name.endswith("tongueOut") and len(tongue):
-            added[e] = _tongue_out(face, skin_deltas[e], tongue + moved[e])
+        if name.endswith("tongueOut"):
+            added[e] = weights[:, None] * _tongue_out(face, skin_deltas[e],
+                                                      points[tongue] + moved[e, tongue])
     return added
+
+
+def _tongue_weights(face, points, roles, triangles):
+    """(m,) how much of the tongue's translation each point of a mouth piece takes: 1 on the
+    tongue; on the rest of the jaw's side of a piece the tongue is cut from (ICT-FaceKit's one
+    surface of floor and tongue), falling smoothly to 0 over TONGUE_OFF_TEETH of the span along
+    the surface, so the floor round the tongue's root and sides comes with it instead of
+    tearing along the tongue's outline (it ends before the lower teeth's gums); 0 elsewhere."""
+    tongue = roles == TONGUE
+    weights = tongue.astype(np.float64)
+    jawed = np.flatnonzero(roles == LOWER)
+    if not len(jawed) or not len(triangles):
+        return weights
+    edges, lengths = _edges(points, triangles)
+    graph = coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(len(points),) * 2).tocsr()
+    along = dijkstra(graph, directed=False, indices=np.flatnonzero(tongue), min_only=True)[jawed]
+    near = np.clip(1.0 - along / (TONGUE_OFF_TEETH * face.span), 0.0, 1.0)
+    weights[jawed] = near * near * (3.0 - 2.0 * near)          # smoothstep
+    return weights
 
 
 def _tongue_out(face, skin_deltas, tongue):
