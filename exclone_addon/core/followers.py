@@ -541,10 +541,7 @@ def _tongue_within(face, local, triangles, jawed, planted):
     none = np.zeros(len(local), dtype=bool)
     if not len(lower) or not jawed.any():
         return none
-    edges, lengths = _edges(local, triangles)
-    graph = coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(len(local),) * 2).tocsr()
-    off_teeth = dijkstra(graph, directed=False, indices=lower, min_only=True) \
-        > TONGUE_OFF_TEETH * face.span
+    off_teeth = _along_surface(local, triangles, lower) > TONGUE_OFF_TEETH * face.span
     inside = np.abs(local[:, 0]) < np.abs(lower_teeth[cKDTree(lower_teeth).query(local)[1], 0])
     candidate = jawed & off_teeth & inside \
         & _seen_from_above(face, local, triangles[jawed[triangles].all(axis=1)])
@@ -570,6 +567,14 @@ def _seen_from_above(face, local, triangles):
     shown = face_render.render(local, triangles, camera).triangle
     seen[triangles[np.unique(shown[shown >= 0])].ravel()] = True
     return seen
+
+
+def _along_surface(points, triangles, ids):
+    """(m,) each point's distance from the nearest of the points `ids` along the triangles'
+    edges (inf where none is connected to it)."""
+    edges, lengths = _edges(points, triangles)
+    graph = coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(len(points),) * 2).tocsr()
+    return dijkstra(graph, directed=False, indices=ids, min_only=True)
 
 
 def _edges(local, triangles):
@@ -655,9 +660,7 @@ def _tongue_weights(face, points, roles, triangles):
     jawed = np.flatnonzero(roles == LOWER)
     if not len(jawed) or not len(triangles):
         return weights
-    edges, lengths = _edges(points, triangles)
-    graph = coo_matrix((lengths, (edges[:, 0], edges[:, 1])), shape=(len(points),) * 2).tocsr()
-    along = dijkstra(graph, directed=False, indices=np.flatnonzero(tongue), min_only=True)[jawed]
+    along = _along_surface(points, triangles, np.flatnonzero(tongue))[jawed]
     near = np.clip(1.0 - along / (TONGUE_OFF_TEETH * face.span), 0.0, 1.0)
     weights[jawed] = near * near * (3.0 - 2.0 * near)          # smoothstep
     return weights
