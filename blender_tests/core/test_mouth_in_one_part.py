@@ -4,7 +4,7 @@ The truth is the library's own motion of its own parts: the followers, given the
 motion, must split that piece where the library's jaw splits it, find its tongue, and move the
 lower teeth as its jaw does; tongueOut brings that tongue out through the registration (a copy
 of the library's mesh numbered differently, as a .glb/.fbx export of an ICT head is) and with one
-base mesh (the library's own numbering: every part solved, cloning.fit_shared)."""
+base mesh (the library's own numbering: every part solved, cloning.fit_faces with shared_vertices)."""
 import numpy as np
 import pytest
 

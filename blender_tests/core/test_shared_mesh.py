@@ -1,6 +1,6 @@
 """A target made from the source's own base mesh (core.character.shared_vertices,
-core.cloning.fit_shared): recognised by its polygons, cloned with no registration, each triangle
-taking its own source triangle's motion. Known answers: the bundled library onto its own mesh
+core.cloning.fit_faces with shared_vertices): recognised by its polygons, cloned with no
+registration, each triangle taking its own source triangle's motion. Known answers: the bundled library onto its own mesh
 (moved, turned, scaled: the truth is the library's own deltas), and, with the shared data, onto
 a new ICT identity (the ICT model's own expressions of that face are its neutral plus the
 library's deltas).

@@ -243,7 +243,7 @@ def shared_vertices(source, face):
     mesh, as MakeHuman's are; not a file whose exporter split vertices at seams, whose numbering
     differs).
     Such a target takes every source triangle's motion on its own triangle, with no registration
-    (cloning.fit_shared)."""
+    (cloning.fit_faces with these as shared_vertices)."""
     if source.own_vertex_count > face.head.total \
             or len(source.mesh.loop_totals) < MIN_SHARED_POLYGONS:
         return None

@@ -120,8 +120,8 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     fixed_vertices: (k,) target vertex ids (its own numbering) every transfer holds still, e.g.
     the cut of a head taken out of a body (core.character.HeadCut.fixed).
     shared_vertices: for a target made from the source's base mesh (core.character.
-    shared_vertices), fit_shared's `shared`: with automatic landmarks the fit is fit_shared's
-    (edited landmarks ask for a registration that holds them).
+    shared_vertices), _fit_shared's `shared`: with automatic landmarks the fit is _fit_shared's,
+    no registration (edited landmarks ask for a registration that holds them).
     Raises ExCloneError with a user-facing message on bad input.
     """
     return _fit(_welded_surface(source, "source mesh"), target, landmarks, source_landmarks,
@@ -406,25 +406,17 @@ def fit_registered(source, target, registered_source, *, settings=None):
         quality=_correspondence_quality(mapped, weights, scale, target_region.diagonal))
 
 
-@limited_threads
-def fit_shared(source, target, shared, *, source_landmarks=None, settings=None,
-               fixed_vertices=None):
-    """A FaceFit of a target made from the source's own base mesh (docs/method.md §7): each
-    target vertex is a vertex of the source, so nothing is registered and each target triangle
-    takes the gradient of its own triangle on the source (an ICT-FaceKit head and the bundled
-    library; two characters made from one base mesh).
+def _fit_shared(source_weld, target, shared, source_landmarks, settings, fixed_vertices):
+    """A FaceFit of a target made from the source's own base mesh (docs/method.md §7; the
+    source welded: Welded, whole mesh): each target vertex is a vertex of the source, so nothing
+    is registered and each target triangle takes the gradient of its own triangle on the source
+    (an ICT-FaceKit head and the bundled library; two characters made from one base mesh).
 
     shared: (n_target,) the source vertex (own numbering) each target vertex is, -1 where the
     source has none (a triangle with such a corner follows without deforming, as an uncovered
     one). source_landmarks: the source's automatic landmarks (names, ids): those whose vertex
     the target has become the fit's (the eyelid rims and the measures use them).
     fixed_vertices: as fit_faces'."""
-    return _fit_shared(_welded_surface(source, "source mesh"), target, shared, source_landmarks,
-                       _checked_settings(settings), fixed_vertices)
-
-
-def _fit_shared(source_weld, target, shared, source_landmarks, settings, fixed_vertices):
-    """fit_shared on the welded source (Welded, whole mesh)."""
     start = time.perf_counter()
     target_weld = _welded_surface(target, "target mesh")
     source_surface, target_region = source_weld.surface, target_weld.surface

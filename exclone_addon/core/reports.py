@@ -9,7 +9,8 @@ def listed(names, most=4):
 
 def fit_error(quality, sized=False):
     """"fit error 0.2%" from a clone's quality dict ("... of the target's size" if sized); for a
-    target made from the source's base mesh (cloning.fit_shared), that it is; "" if neither."""
+    target made from the source's base mesh (cloning.fit_faces with shared_vertices), that it
+    is; "" if neither."""
     shared = quality.get("shared_vertices")
     if shared is not None:
         return f"the source's own base mesh ({shared:,} vertices matched, no registration)"
