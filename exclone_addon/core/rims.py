@@ -168,10 +168,7 @@ class _StationRims:
         self.ids = np.concatenate([upper, lower])
         self.source_ids = np.concatenate([source_upper, source_lower])
         stations = lids.opening.station(vertices[self.ids])
-        # the heights' ratio between the outermost stations measured: it vanishes at the corners
-        measured = np.clip(stations, EYE_STATIONS[0], EYE_STATIONS[-1])
-        height_scale = _open_height(lids, vertices, measured) \
-            / _open_height(source_lids, source_vertices, measured)
+        height_scale = _height_ratio(lids, source_lids, vertices, source_vertices, stations)
         share = np.zeros((len(self.ids), len(self.source_ids)))
         at = [slice(0, len(upper)), slice(len(upper), len(self.ids))]
         of = [slice(0, len(source_upper)), slice(len(source_upper), len(self.source_ids))]
@@ -212,9 +209,7 @@ def _closing_together(lids, source_lids, vertices, source_vertices, upper, lower
             min(opening.station(vertices[row]).max() for row in (upper, lower))]
     stations = np.linspace(*ends, GAP_STATIONS)
     gap = _gap_operator(opening, vertices, upper, lower, stations)
-    measured = np.clip(stations, EYE_STATIONS[0], EYE_STATIONS[-1])
-    ratio = _open_height(lids, vertices, measured) \
-        / _open_height(source_lids, source_vertices, measured)
+    ratio = _height_ratio(lids, source_lids, vertices, source_vertices, stations)
     wanted = ratio[:, None] * _gap_operator(source_opening, source_vertices, source_upper,
                                             source_lower, stations)
     # a vertex on both rows (where the lids meet) is one unknown, its own goal the rows' mean
@@ -225,6 +220,14 @@ def _closing_together(lids, source_lids, vertices, source_vertices, upper, lower
     own = (each / each.sum(axis=0)).T @ own
     normal = gap.T @ gap / GAP_STATIONS + GAP_GOALS * np.identity(len(vertex_ids))
     return each @ np.linalg.solve(normal, gap.T @ wanted / GAP_STATIONS + GAP_GOALS * own)
+
+
+def _height_ratio(lids, source_lids, vertices, source_vertices, stations):
+    """(S,) the target's open height over the source's at the stations; beyond the outermost
+    stations measured (EYE_STATIONS) the ratio there: the heights vanish at the corners."""
+    measured = np.clip(stations, EYE_STATIONS[0], EYE_STATIONS[-1])
+    return _open_height(lids, vertices, measured) \
+        / _open_height(source_lids, source_vertices, measured)
 
 
 def _open_height(lids, vertices, stations):
