@@ -639,13 +639,13 @@ def _tongue_out_motion(face, skin_deltas, names, points, roles, triangles, moved
     zero in other keys."""
     added = np.zeros_like(moved)
     tongue = roles == TONGUE
-    if not tongue.any():
+    keys = [e for e, name in enumerate(names) if name.endswith("tongueOut")]
+    if not tongue.any() or not keys:
         return added
     weights = _tongue_weights(face, points, roles, triangles)
-    for e, name in enumerate(names):
-        if name.endswith("tongueOut"):
-            added[e] = weights[:, None] * _tongue_out(face, skin_deltas[e],
-                                                      points[tongue] + moved[e, tongue])
+    for e in keys:
+        added[e] = weights[:, None] * _tongue_out(face, skin_deltas[e],
+                                                  points[tongue] + moved[e, tongue])
     return added
 
 
