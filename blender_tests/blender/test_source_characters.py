@@ -7,13 +7,14 @@ its landmarks found with the face's guide), through the command line's reading
 
 Asserted per unit, on the core.expression_measures measures of the clone beside its source:
 nothing outside the head moves, no edge stretched more than 2.5x beyond the source's own stretch
-(where that is not reached, the reached figure with a margin, named in REACHED), no more flipped
-triangles than the source's own unit flips (MakeHuman's units flip some themselves: mouth-open 98,
-each eye closure 17), the closing eye closes and the other stays open, the mouth opens; and the
-motion is the source's: at every named landmark the unit moves, the clone moves the same way (up
-for a smile's corners and a raised brow, down for a closing lid), and over the face the clone's
-motion points where the source's does at the corresponding points, at the same size relative to
-the face. Skipped without the shared data. Run with -s to see the figures."""
+(where that is not reached, the reached figure with a margin, named in REACHED), no more of the
+face turned over than the source's own unit turns over (MakeHuman's units turn some over
+themselves: mouth-open the inside of its lower lip, 98 triangles, each eye closure 17 at its inner
+corner), the closing eye closes and the other stays open, the mouth opens; and the motion is the
+source's: at every named landmark the unit moves, the clone moves the same way (up for a smile's
+corners and a raised brow, down for a closing lid), and over the solved face the clone's motion
+points where the source's does at the corresponding points, at the same size relative to the
+face. Skipped without the shared data. Run with -s to see the figures."""
 import json
 import os
 import re
@@ -32,7 +33,7 @@ from exclone_addon.blender import landmarks as stored_landmarks
 from exclone_addon.core import data, expression_measures as em
 from exclone_addon.core.cloning import clone_expressions
 from exclone_addon.core.library import load_library
-from exclone_addon.core.mesh import read_obj, triangle_normals
+from exclone_addon.core.mesh import read_obj, triangle_areas, triangle_normals
 
 SOURCE_FILE = SHARED_DATA / "characters" / "mh_child_body_expr.blend"
 pytestmark = pytest.mark.skipif(not SOURCE_FILE.is_file(),
@@ -45,7 +46,13 @@ UNITS = ["eye-left-closure", "eye-right-closure", "mouth-open", "mouth-corner-pu
 TARGETS = ("demo_head", "ict_neutral")
 STILL = 1e-4            # x the diagonal: the most anything outside the solved region may move
 STRETCH_BAR = 2.5       # the issue's bar: the clone's stretch beyond the source's own
-FLIP_MARGIN = 3         # triangles beyond the source's own flips of the same unit
+FLIP_MARGIN = 3         # the target's triangles (of its median area) turned over beyond the area
+                        # the source's own unit turns over, each face's area x its outer eye
+                        # corners' distance squared. Areas, not counts: the ICT neutral's triangles
+                        # are half the child's (median 4.2e-4 against 8.2e-4 eye widths squared),
+                        # so turning over the same part of the lip as the source (mouth-open: the
+                        # inside of the lower lip, the same region on front renders, 0.214
+                        # against the child's 0.219) counts 546 triangles against 98
 CLOSED = 0.1            # the issue's bar: a closing eye leaves at most this share of its opening
 CROSSED = -0.3          # its lids cross by no more than this share (demo head: 6%; 22-24% before
                         # the rims' station goals)
@@ -55,33 +62,35 @@ SAME_WAY = 0.85         # mean cosine of the clone's and the source's motion whe
 MOVING = 0.25           # ... where the source's motion is above this share of its largest
 SIZE = (0.6, 1.6)       # the clone's motion / the source's (each x its face's outer eye corners'
                         # distance)
+# The motion is compared on the solved region only (expression_measures.solved_vertices): the
+# ICT neutral's eyeballs, lashes, eye occlusion, teeth, gums and mouth socket have no counterpart
+# on the child's skin, and the skin nearest them (the source's image there) is the lid or lip
+# over them, moving as they must not. Counted with them, the closing eyes' still eyeballs read
+# as motion 0.51 in cosine and 0.42 in size, the pursed mouth's and the smile's still teeth and
+# gums 0.54 and 0.65 (on the skin alone 0.95-0.97 / 0.80, 0.995, 0.98); the demo head is all skin.
 # (target, unit) -> the figures reached where a bar above is not (measured, not tuned away).
-# On the demo head: the worst edge at the lids' inner rims, and the left lids at the inner
-# station (the rims' station goals close them as far as the child's own lids close, 9.7% and
-# 6.3% there, and leave 10.9% and 8.6% since the goals are met (rims.STATION_WEIGHT; 12.5% and
-# 11.2-11.8% before); with the goals at the vertex map's images they crossed by 22%);
-# its mouth-open meets the bar since the vertex map
-# measures an image's edges along the source (1.6-2.1x; it was 2.8-3.0x, the upper lip's inside
-# hanging down with the jaw in spikes where its corners' images lay across the closed lips). On
-# the ICT neutral (seen on front renders; its lids close to 8.3% / 4.9% with the rims' station
-# goals met, 8.9% / 5.8% held short of them, 44% / 50% before): the mouth-open
-# crumples the cheeks beside the corners (nearly all its flips have a corner whose image lies on
-# a triangle the source's own unit turns over, at the ICT neutral's 3x density), the pursing
-# pulls the mouth sideways and the smile's motion spreads. Checked with margins: excess stretch x 1.25, flips + 10%,
-# eyelid gap + 0.05, cosine - 0.05, size x 0.8. The figures are the worst of runs with numpy 1.26
-# and numpy 2: worst-edge and flip counts move between them (the demo head's eye closures
-# 2.7-3.1x with numpy 1.26, 3.55x with numpy 2; on the ICT neutral eye-left-closure 60-70 flips,
-# mouth-open 6.45x and 546 flips with numpy 1.26, 4.48x and 541 with numpy 2).
+# On the demo head: the worst edge at the lids' outer corners (within 0.03 eye widths of the
+# corner landmark, the clone's edge 3.3x where the source's image stretches 1.1-1.2x), and the
+# left lids at the inner station (the rims' station goals close them as far as the child's own
+# lids close, 9.7% and 6.3% there, and leave 10.9% and 8.6% since the goals are met
+# (rims.STATION_WEIGHT; 12.5% and 11.2-11.8% before); with the goals at the vertex map's images
+# they crossed by 22%); its mouth-open meets the bar since the vertex map measures an image's
+# edges along the source (1.6-2.1x; it was 2.8-3.0x, the upper lip's inside hanging down with the
+# jaw in spikes where its corners' images lay across the closed lips). On the ICT neutral (seen on
+# front renders; its lids close to 8.3% / 4.9% with the rims' station goals met, 8.9% / 5.8% held
+# short of them, 44% / 50% before): the mouth-open turns over the inside of the lower lip as the
+# child's own unit does (the same region on front renders, 2% more of it: 0.2214 against 0.2193
+# eye widths squared, with numpy 2), its worst edge a short one (a sixth of the mean) 0.07 eye
+# widths from the right mouth corner (6.43x; the next 3.3x), the smile's worst edges 0.09 from
+# the corners. Checked with margins: excess stretch x 1.25, turned-over area + 10%, eyelid gap +
+# 0.05. The figures are the worst of runs with numpy 1.26 and numpy 2, which move the worst edges
+# (numpy 1.26 / 2: the demo head's eye closures 2.89 / 1.87x and 3.06 / 1.71x, the ICT neutral's
+# mouth-open 6.43 / 4.48x and 0.214 / 0.221 turned over, its smile 3.00 / 3.26x).
 REACHED = {
-    ("demo_head", "eye-left-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25,
-                                        "eyelid_gap": 0.109},
-    ("demo_head", "eye-right-closure"): {"excess_stretch": 3.55, "flipped_triangles": 25},
-    ("ict_neutral", "eye-left-closure"): {"flipped_triangles": 70, "cosine": 0.515, "size": 0.43},
-    ("ict_neutral", "eye-right-closure"): {"flipped_triangles": 70, "cosine": 0.519, "size": 0.42},
-    ("ict_neutral", "mouth-open"): {"excess_stretch": 6.45, "flipped_triangles": 546,
-                                    "cosine": 0.841},
-    ("ict_neutral", "mouth-corner-puller"): {"excess_stretch": 2.73, "cosine": 0.649},
-    ("ict_neutral", "mouth-pursing"): {"cosine": 0.536},
+    ("demo_head", "eye-left-closure"): {"excess_stretch": 2.89, "eyelid_gap": 0.109},
+    ("demo_head", "eye-right-closure"): {"excess_stretch": 3.06},
+    ("ict_neutral", "mouth-open"): {"excess_stretch": 6.43, "turned_over": 0.2214},
+    ("ict_neutral", "mouth-corner-puller"): {"excess_stretch": 3.26},
 }
 # unit -> (landmark, axis of the face's frame (0 left, 1 up, 2 forward), sign) it must move along,
 # as the source moves it there; None: the mean motion where the source's motion is MOVING
@@ -109,7 +118,7 @@ def reached(target_name, unit, measure, bar):
     figure = REACHED.get((target_name, unit), {}).get(measure)
     if figure is None:
         return bar
-    return {"excess_stretch": lambda: 1.25 * figure, "flipped_triangles": lambda: 1.1 * figure,
+    return {"excess_stretch": lambda: 1.25 * figure, "turned_over": lambda: 1.1 * figure,
             "eyelid_gap": lambda: figure + 0.05, "cosine": lambda: figure - 0.05,
             "size": lambda: 0.8 * figure}[measure]()
 
@@ -133,7 +142,8 @@ def source_turn():
 @lru_cache(maxsize=None)
 def cloned(target_name):
     """(target face, CloneResult, measures, source images (rest, deltas) at the target's
-    vertices) of the body's units onto the target, as the command line clones them."""
+    vertices, (n,) bool the target's vertices in the solved region) of the body's units onto the
+    target, as the command line clones them."""
     library = source()
     bpy.ops.wm.read_factory_settings(use_empty=True)
     if target_name == "demo_head":
@@ -149,22 +159,32 @@ def cloned(target_name):
     measures = em.measure_clone(face.head.mesh, result, source=library.mesh,
                                 source_deltas=library.deltas)
     images = em.source_images(face.head.mesh.vertices, library.mesh, library.deltas, result)
+    solved = em.solved_vertices(face.head.mesh, result)
     print(f"\n{target_name}: " + "; ".join(
         f"{name}: " + ", ".join(f"{key} {row[key]:.3g}" for key in (
             "eyelid_gap_left", "eyelid_gap_right", "lip_gap", "excess_stretch",
             "flipped_triangles", "motion_outside") if row.get(key) is not None)
         for name, row in measures.items()))
-    return face, result, measures, images
+    return face, result, measures, images, solved
+
+
+def _turned_over(vertices, triangles, delta, width):
+    """(area of the triangles `delta` turns over / width squared, (T,) each triangle's area /
+    width squared)."""
+    areas = triangle_areas(vertices, triangles) / width ** 2
+    rest = triangle_normals(vertices, triangles)
+    turned = np.einsum("ij,ij->i", triangle_normals(vertices + delta, triangles), rest) < 0
+    return float(areas[turned].sum()), areas
 
 
 @lru_cache(maxsize=None)
-def source_flips():
-    """{unit: triangles the source's own unit turns over} on its head region."""
+def source_turned_over():
+    """{unit: the area its own unit turns over on the source's head region, x the source face's
+    outer eye corners' distance squared}."""
     library = source()
     vertices, triangles = library.mesh.vertices, library.mesh.triangles()
-    rest = triangle_normals(vertices, triangles)
-    return {name: int(np.sum(np.einsum("ij,ij->i", triangle_normals(vertices + delta, triangles),
-                                       rest) < 0))
+    width = _eye_width(vertices, *library.automatic_landmarks)
+    return {name: _turned_over(vertices, triangles, delta, width)[0]
             for name, delta in zip(library.names, library.deltas)}
 
 
@@ -189,11 +209,18 @@ def test_the_body_is_cut_to_its_head_with_its_units():
 @pytest.mark.parametrize("target_name", TARGETS)
 @pytest.mark.parametrize("unit", UNITS)
 def test_measures(target_name, unit):
-    face, result, measures, _ = cloned(target_name)
+    face, result, measures, _, solved = cloned(target_name)
     row = measures[unit]
     assert row["excess_stretch"] <= reached(target_name, unit, "excess_stretch", STRETCH_BAR), row
-    assert row["flipped_triangles"] <= reached(target_name, unit, "flipped_triangles",
-                                               source_flips()[unit] + FLIP_MARGIN), row
+    vertices, triangles = face.head.mesh.vertices, face.head.mesh.triangles()
+    triangles = triangles[solved[triangles].all(axis=1)]
+    turned, areas = _turned_over(
+        vertices, triangles, result.deltas[result.names.index(unit)],
+        _eye_width(vertices, result.landmark_names, result.target_landmarks))
+    print(f"\n{target_name} {unit}: turned over {turned:.4g} (source {source_turned_over()[unit]:.4g})"
+          f" x eye width squared, {row['flipped_triangles']} triangles")
+    assert turned <= reached(target_name, unit, "turned_over", source_turned_over()[unit]
+                             + FLIP_MARGIN * np.median(areas)), row
     side = {"eye-left-closure": ("left", "right"), "eye-right-closure": ("right", "left")}
     if unit in side:
         closing, other = side[unit]
@@ -224,7 +251,7 @@ def _landmark_motion(names, ids, deltas, name):
 @pytest.mark.parametrize("target_name", TARGETS)
 @pytest.mark.parametrize("unit", UNITS)
 def test_the_clone_moves_as_the_source(target_name, unit):
-    face, result, _, (_, image_deltas) = cloned(target_name)
+    face, result, _, (_, image_deltas), solved = cloned(target_name)
     library = source()
     row = result.names.index(unit)
     # the clone is in the target face's frame (its head mesh's), the source in its own
@@ -235,7 +262,7 @@ def test_the_clone_moves_as_the_source(target_name, unit):
     src_names, src_ids = library.automatic_landmarks
     image = image_deltas[row]
     size = np.linalg.norm(image, axis=1)
-    moving = size > MOVING * size.max()
+    moving = solved & (size > MOVING * size[solved].max())
     for name, axis, sign in MOVES[unit]:
         if name is None:
             theirs, ours = image[moving].mean(axis=0), clone[moving].mean(axis=0)

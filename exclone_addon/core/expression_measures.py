@@ -478,15 +478,33 @@ def measure_clone(target, result, names=None, deltas=None, source=None, source_d
     the clone's source, for excess_stretch (source_images). Measured on the welded target
     (mesh.welded, as the fit): a lid or lip split at a UV seam is one surface, not a border."""
     names, deltas = (result.names, result.deltas) if names is None else (names, deltas)
-    welded, index = mesh.welded(target)
+    vertices, index, landmarks, region = _solved_region(target, result)
     first = np.unique(index, return_index=True)[1]     # one original of each welded vertex
-    landmarks = index[np.asarray(result.target_landmarks, dtype=np.int64)]
-    vertices, triangles = mesh.checked_triangles(welded, "target mesh")
-    surface = Surface(vertices, triangles)
-    region = surface.parts_holding(landmarks) if len(landmarks) else surface
     images = None if source is None else source_images(vertices, source, source_deltas, result)
     return measure_expressions(vertices, region.triangles, np.asarray(deltas)[:, first], names,
                                result.landmark_names, landmarks, region.used, images)
+
+
+def _solved_region(target, result):
+    """(welded vertices, (n,) welded id of each of the target's own vertices, the landmarks'
+    welded ids, the Surface of the solved region): the welded target's parts that hold its
+    landmarks (all of it without landmarks), as in the fit."""
+    welded, index = mesh.welded(target)
+    landmarks = index[np.asarray(result.target_landmarks, dtype=np.int64)]
+    vertices, triangles = mesh.checked_triangles(welded, "target mesh")
+    surface = Surface(vertices, triangles)
+    return vertices, index, landmarks, surface.parts_holding(landmarks) if len(landmarks) \
+        else surface
+
+
+def solved_vertices(target, result):
+    """(n,) bool: which of the target's (PolyMesh) own vertices lie in the solved region, where
+    the clone's motion is the source's carried over. The other parts (a separate eye, lashes,
+    teeth, a mouth socket) follow by rules (docs/method.md §9) or stay: they have no counterpart
+    on the source, and the source's surface nearest them (source_images) is skin they lie under
+    or behind, not a point they correspond to."""
+    _, index, _, region = _solved_region(target, result)
+    return np.isin(index, region.used)
 
 
 def source_images(vertices, source, source_deltas, result):
