@@ -51,6 +51,9 @@ class CloneResult:
     registered_source: np.ndarray     # (n_source, 3) source neutral deformed onto the target
     timings: dict = field(default_factory=dict)   # seconds per phase
     quality: dict = field(default_factory=dict)   # e.g. registration_mean_distance_rel
+    # expression_measures.Openings of the rest target's eyes and lips as the rims found them
+    # (welded numbering; None: not found), so that the measures need not find them again
+    openings: object = None
 
 
 @dataclass
@@ -551,7 +554,8 @@ def transfer_expressions(fit, source_deltas, names):
     timings["total"] = sum(timings.values())
     return CloneResult(list(names), _in_own_numbering(result, fit.welded_target.index),
                        fit.source_landmarks, fit.target_landmarks,
-                       fit.landmark_names, fit.registered_source, timings, dict(fit.quality))
+                       fit.landmark_names, fit.registered_source, timings, dict(fit.quality),
+                       None if fit._rims is None else fit._rims.openings)
 
 
 def _transferred(fit, deltas):

@@ -330,6 +330,7 @@ class Openings:
     def __init__(self, vertices, triangles, landmarks):
         """landmarks: {name: target vertex id}."""
         self.lids, self.reasons, self.lips = {}, {}, None
+        self._made_on = (vertices, triangles, dict(landmarks))
         points = {name: vertices[i] for name, i in landmarks.items()}
         missing = [name for name in self.NEEDED if name not in points]
         if missing:
@@ -349,6 +350,13 @@ class Openings:
             else:
                 self.lids[f"eye_{side}"] = lids
 
+    def made_on(self, vertices, triangles, landmarks):
+        """Whether these are the openings of this rest surface and these landmarks (so they
+        need not be found again)."""
+        own_vertices, own_triangles, own_landmarks = self._made_on
+        return own_landmarks == landmarks and np.array_equal(own_triangles, triangles) \
+            and np.array_equal(own_vertices, vertices)
+
     def _lips_apart(self, positions):
         upper, lower = self.lips
         return float((positions[upper] - positions[lower]) @ self.up)
@@ -363,7 +371,7 @@ class Openings:
 # ------------------------------------------------------------------------------ measures
 
 def measure_expressions(vertices, triangles, deltas, names, landmark_names, landmark_ids,
-                        solved_vertices, images=None):
+                        solved_vertices, images=None, openings=None):
     """Measures of every expression on the target: {name: measures}, plus one entry
     "jawOpen+mouthClose" (the two deltas summed) where both are given.
 
@@ -380,7 +388,9 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     corresponding point, at rest and moved by each expression (source_images); with them
     excess_stretch is measured too (max over edges of the target's stretch / the source's stretch
     of the same edge's image, counted from 1: what the clone adds to the source's own stretch),
-    else None.
+    else None. openings: the rest target's Openings when found already (the clone's rims find
+    them: CloneResult.openings); found here unless made on these vertices, triangles and
+    landmarks.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -396,8 +406,9 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
         names = names + [MEASURED_TOGETHER]
     if image_deltas is None:
         image_deltas = [None] * len(deltas)
-    openings = Openings(vertices, triangles, {str(name): int(i) for name, i
-                                               in zip(landmark_names, landmark_ids)})
+    landmarks = {str(name): int(i) for name, i in zip(landmark_names, landmark_ids)}
+    if openings is None or not openings.made_on(vertices, triangles, landmarks):
+        openings = Openings(vertices, triangles, landmarks)
     shape = _Shape(vertices, triangles, solved_vertices)
     return {name: {**_opening_measures(openings, vertices + delta, shape.diagonal),
                    **shape.measures(delta), **shape.excess(delta, image_rest, image_delta)}
@@ -482,7 +493,8 @@ def measure_clone(target, result, names=None, deltas=None, source=None, source_d
     first = np.unique(index, return_index=True)[1]     # one original of each welded vertex
     images = None if source is None else source_images(vertices, source, source_deltas, result)
     return measure_expressions(vertices, region.triangles, np.asarray(deltas)[:, first], names,
-                               result.landmark_names, landmarks, region.used, images)
+                               result.landmark_names, landmarks, region.used, images,
+                               result.openings)
 
 
 def _solved_region(target, result):

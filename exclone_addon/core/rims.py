@@ -85,6 +85,7 @@ class RimGoals:
         source_openings = expression_measures.Openings(
             source_vertices, source_triangles,
             dict(zip(names, np.asarray(source_landmark_ids).tolist()))) if openings.lids else None
+        self.openings = openings
         self.eyes = []
         for key, lids in openings.lids.items():
             source_lids = source_openings.lids.get(key)
