@@ -8,7 +8,8 @@ ARKit shape keys, as a Blender mesh object (bpy module); the tracker's points ar
 by the shipped tracker model, so no registration runs here.
 
 1. The step, on this thread: per frame track (or detect), landmarks, iris (on the session's
-   own thread, beside the shape fit), shape fit, eyes, filters, weights, and the weights written
+   own thread, beside FaceMesh, or beside the shape fit when its crops are made again from this
+   frame's points), shape fit, eyes, filters, weights, and the weights written
    into the object's shape-key values. Reported: the median and 95th percentile per stage and of
    the whole step over the frames after calibration, in wall-clock and in CPU time of the
    process (the machine may be shared), against STEP_TARGET_MS; Blender's own evaluation of the

@@ -49,6 +49,9 @@ WEIGHT = 20.0
 CROP_MARGIN_PX = 32
 LUCAS_KANADE = dict(winSize=(11, 11), maxLevel=2,
                     criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
+# The face's motion from the frame before (MaterialPoints.motion) is read from at least this many
+# tracked points.
+MIN_MOTION_POINTS = 10
 
 
 class MaterialPoints:
@@ -79,10 +82,14 @@ class MaterialPoints:
         self._modes = np.ascontiguousarray(model.modes[:, self.indices].transpose(1, 2, 0))
         self._gray = gray
         self.points = fit.points2d[self.indices].astype(np.float32)
+        self.motion = None
 
     def track(self, gray):
-        """(m, 2) the material points in this frame (NaN where not found or not trusted)."""
+        """(m, 2) the material points in this frame (NaN where not found or not trusted). Sets
+        `motion`: the 2x3 similarity (pixels) the tracked points moved by from the frame
+        before, robustly fitted (RANSAC); None when too few were tracked."""
         tracked = np.full((len(self.indices), 2), np.nan)
+        self.motion = None
         if self._gray is not None:
             # both frames cropped about the points: the flow's pyramids cover the face only
             height, width = gray.shape
@@ -97,6 +104,11 @@ class MaterialPoints:
             valid = ((found[:, 0] == 1) & (found_back[:, 0] == 1)
                      & (np.linalg.norm(back - start, axis=1) < FORWARD_BACKWARD_PX))
             tracked[valid] = ahead[valid] + low
+            if np.count_nonzero(valid) >= MIN_MOTION_POINTS:
+                self.motion = cv2.estimateAffinePartial2D(start[valid], ahead[valid])[0]
+                if self.motion is not None:
+                    # from the crop's pixels back to the frame's
+                    self.motion[:, 2] += low - self.motion[:, :2] @ low
             self.points = np.where(valid[:, None], tracked, self.points).astype(np.float32)
         self._gray = gray
         return tracked

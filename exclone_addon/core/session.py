@@ -42,10 +42,21 @@ FIT_TOLERANCE_PX = 0.05
 # and 94.0 pixels on the astronaut photograph.)
 FOLLOW_GRACE_S = 1.0
 SAME_WIDTH_RATIO = 1.4
+# The iris model's crops of the eyes where the flow moved the frame before's FaceMesh points are
+# used when each eye's corners lie within this share of the eye's width (corner to corner) of
+# this frame's; otherwise the eyes are cropped again from this frame's points (after the early
+# run: such a frame takes about one network run longer). The moved corners lie 1% of the width
+# from this frame's (median; 3% at the 95th percentile) with the eyes open on the eye take, 2-15%
+# in its blinks, where FaceMesh's corners drop as the lids close; the iris model reads a blink
+# weaker from crops that did not follow them: the eye take's lowest blink peak 0.743 (this
+# frame's crops) -> 0.689 at 0.1, 0.703 at 0.05, 0.740 at 0.04. At 0.04, 3-10% of the rendered
+# takes' frames and none of bench_track's take are cropped again.
+CROP_SHIFT = 0.04
 # The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs):
 # "eyes" reads the iris model's points and brings them frontal, "material" tracks the material
 # points and fits them beside FaceMesh's. The iris model's network runs on its own thread beside
-# "fit": the stages add up to more than the step.
+# "landmarks" (or, when its crops are made again, beside "fit"): the stages add up to more than
+# the step.
 STAGES = ("detect", "landmarks", "iris", "fit", "material", "eyes", "weights")
 
 
@@ -76,6 +87,17 @@ class LandmarkFilter:
         smooth = self._filter(local_points, timestamp)
         back = a * (smooth[:, 0] + 1j * smooth[:, 1]) + centre
         return np.column_stack((back.real, back.imag, smooth[:, 2:] * abs(a)))
+
+
+def _crops_hold(moved, points):
+    """Whether the eyes' crops from the points `moved` (n, 2; None: none) serve for FaceMesh's
+    `points` (n, 2 or 3) of the frame (CROP_SHIFT)."""
+    if moved is None:
+        return False
+    corners = np.array(face_models.EYE_CORNERS)
+    widths = np.linalg.norm(points[corners[:, 1], :2] - points[corners[:, 0], :2], axis=1)
+    shifts = np.linalg.norm(moved[corners] - points[corners, :2], axis=2)
+    return bool(np.all(shifts <= CROP_SHIFT * widths[:, None]))
 
 
 @dataclass
@@ -129,10 +151,11 @@ class FaceTrackingSession:
         self.detector = face_models.FaceDetector(models_dir)
         self.landmarker = face_models.FaceLandmarker(models_dir)
         self.iris = face_models.IrisLandmarker(models_dir)
-        # The iris model's network runs on a thread of its own beside the shape fit (OpenCV's
-        # forward pass releases the GIL): a step takes the longer of the two, not their sum. Its
-        # crops and the reading of its outputs stay on the step's thread, so the iris thread
-        # seldom waits for the GIL the fit holds (0.4 ms a step less on bench_track's take).
+        # The iris model's network runs on a thread of its own beside FaceMesh and the shape fit
+        # (OpenCV's forward pass releases the GIL): a step takes the longer of the two threads'
+        # work, not their sum. The reading of its outputs stays on the step's thread, so the
+        # iris thread seldom waits for the GIL the fit holds (0.4 ms a step less on
+        # bench_track's take).
         self._iris_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ExClone iris")
         tracker_model = tracker_model or load_tracker_model()
         self.model = tracker_model.shape_model
@@ -153,6 +176,7 @@ class FaceTrackingSession:
         self._seen_at = None          # and when (seconds)
         self._previous_fit = None
         self._fit_before = None       # the fit of the frame before that (None: none to go on)
+        self._face_points = None      # the frame before's FaceMesh points (None: no face)
         self._last = None             # the last FrameResult with a face
         self._pending = 0             # calibration frames still wanted (0: not calibrating)
         self._calibration_points = []
@@ -275,39 +299,67 @@ class FaceTrackingSession:
         self._use_image_size(image.shape[1], image.shape[0], name)
         stage_ms = dict.fromkeys(STAGES, 0.0)
         self._gray = None if self.still_images else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-        # the material points' flow needs only the frames: on the iris model's thread while
-        # FaceMesh runs on this one
-        flow_run = None
+        # on the iris model's thread while FaceMesh runs on this one: the material points' flow
+        # (it needs only the frames), then the iris network on the eyes of the frame before's
+        # points moved as the flow saw the face move
+        flow_run = early_iris = None
         if self._material is not None and self._gray is not None:
-            flow_run = self._iris_thread.submit(self._timed_flow, self._gray)
+            flow_run = self._iris_thread.submit(self._timed_flow, self._gray, self._face_points)
+            if self._face_points is not None:
+                early_iris = self._iris_thread.submit(self._early_iris, image, flow_run)
         points, detected = self._find_face(image, timestamp, stage_ms)
+        self._face_points = points
+        flow = None if flow_run is None else flow_run.result()
         if points is None:
-            if flow_run is not None:
-                wait([flow_run])
+            if early_iris is not None:
+                wait([early_iris])
             return self._lost(stage_ms)
         start = time.perf_counter()
-        iris_run = self._iris_thread.submit(self._timed_iris, self.iris.input_blob(image, points))
+        if detected or early_iris is None or not _crops_hold(flow[2], points):
+            if early_iris is not None:
+                early_iris.cancel()
+            iris_run = self._iris_thread.submit(self._timed_iris, self.iris.input_blob(image, points),
+                                                points)
+        else:
+            iris_run = early_iris
         stage_ms["iris"] = 1000 * (time.perf_counter() - start)
         try:
             self._followed_box, self._seen_at = face_models.landmarks_box(points), timestamp
             roi = face_models.roi_from_landmarks(points)
             self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
             return self._track(points, timestamp, stage_ms, restart=detected, iris_run=iris_run,
-                               flow_run=flow_run)
+                               flow=flow)
         finally:
             wait([iris_run])        # the network is free again when the step returns
 
-    def _timed_flow(self, gray):
-        """(The material points tracked into this frame, the milliseconds): on the iris thread."""
+    def _timed_flow(self, gray, face_points):
+        """On the iris thread: (the material points tracked into this frame, the milliseconds,
+        where the frame before's FaceMesh points `face_points` (or None) moved to by the face's
+        motion the flow saw: None when it saw none)."""
         start = time.perf_counter()
         tracked = self._material.track(gray)
-        return tracked, 1000 * (time.perf_counter() - start)
+        motion = self._material.motion
+        moved = None
+        if face_points is not None and motion is not None:
+            moved = face_points[:, :2] @ motion[:, :2].T + motion[:, 2]
+        return tracked, 1000 * (time.perf_counter() - start), moved
 
-    def _timed_iris(self, blob):
-        """(The iris network's outputs, its milliseconds): on the iris thread."""
+    def _early_iris(self, image, flow_run):
+        """On the iris thread after the flow (`flow_run`, done by then): _timed_iris on the
+        eyes where the flow moved the frame before's points; None when it moved none."""
+        moved = flow_run.result()[2]
+        if moved is None:
+            return None
+        start = time.perf_counter()
+        outputs = self.iris.run(self.iris.input_blob(image, moved))
+        return outputs, 1000 * (time.perf_counter() - start), moved
+
+    def _timed_iris(self, blob, points):
+        """(The iris network's outputs, its milliseconds, the points whose eyes `blob` holds):
+        on the iris thread."""
         start = time.perf_counter()
         outputs = self.iris.run(blob)
-        return outputs, 1000 * (time.perf_counter() - start)
+        return outputs, 1000 * (time.perf_counter() - start), points
 
     def step_landmarks(self, landmarks, timestamp, image_size=None):
         """One frame from given landmarks (468, 2 or 3) in pixels, past the image models (for
@@ -342,9 +394,10 @@ class FaceTrackingSession:
 
     # -- shape fit and calibration (docs/method.md §11), weights (§12)
     def _track(self, points, timestamp, stage_ms, restart, iris_run=None, depth=True,
-               flow_run=None):
-        """iris_run: a Future of _timed_iris (the iris network running beside the fit), or None;
-        flow_run: one of _timed_flow (the material points tracked into this frame), or None."""
+               flow=None):
+        """iris_run: a Future of _timed_iris or _early_iris (the iris network running beside
+        FaceMesh or the fit), or None;
+        flow: what _timed_flow returned (the material points tracked into this frame), or None."""
         # the fit reads the points' relative depth (FaceMesh's z) too, when they have one
         observed = points if depth else points[:, :2]
         if restart or self.still_images:
@@ -359,8 +412,8 @@ class FaceTrackingSession:
         shown = fit       # its shape parameters from the material points' fit when there is one
         if self._material is not None and not self._pending:
             tracked = None
-            if flow_run is not None:
-                tracked, stage_ms["material"] = flow_run.result()
+            if flow is not None:
+                tracked, stage_ms["material"], _ = flow
             start = time.perf_counter()
             # after a detection the last frame's points are not this face's
             shown = self._material.fit(None if restart else tracked, fit)
@@ -370,9 +423,9 @@ class FaceTrackingSession:
         pose = None if self._pending else self._shown_pose(shown, points, timestamp)
         eye_points = None
         if iris_run is not None:
-            outputs, run_ms = iris_run.result()
+            outputs, run_ms, crop_points = iris_run.result()
             start = time.perf_counter()
-            eye_points = self.iris.read(outputs, points)
+            eye_points = self.iris.read(outputs, crop_points)
             stage_ms["iris"] += run_ms + 1000 * (time.perf_counter() - start)
         start = time.perf_counter()
         reading = eyes.read_eyes(eye_points) if eye_points is not None else None
