@@ -130,3 +130,33 @@ def test_fit_reads_the_pose_of_points_that_slide():
     print(f"\nturn error with the slide {max(errors['with']):.3f} deg, without "
           f"{max(errors['without']):.2f} deg")
     assert max(errors["with"]) < 0.05 and max(errors["without"]) > 0.5
+
+
+def test_learning_recovers_how_far_the_detector_follows_expressions():
+    """The made-up detector follows each expression 0.6 of the way: the learnt seen motion of the
+    keys it saw in enough frames is that share of the located motion."""
+    learned, _, _, heads, _ = known_detector()
+    seen_in = np.sum([np.count_nonzero(h.weights, axis=0) for h in heads], axis=0)
+    located = learned["deltas"].reshape(len(seen_in), -1)
+    moving = (seen_in >= 6) & (np.linalg.norm(located, axis=1) > 0.5)
+    seen = learned["seen_deltas"].reshape(len(seen_in), -1)[moving]
+    share = np.einsum("ei,ei->e", seen, located[moving]) / np.einsum("ei,ei->e", located[moving],
+                                                                     located[moving])
+    print(f"\n{np.count_nonzero(moving)} keys: share {np.median(share):.3f} median "
+          f"({share.min():.3f}-{share.max():.3f})")
+    assert abs(np.median(share) - 0.6) < 0.05
+
+
+def test_seen_modes_are_the_modes_combinations_of_the_seen_motion():
+    rng = np.random.default_rng(3)
+    mean, displacements = rng.normal(size=(20, 3)), rng.normal(size=(6, 20, 3))
+    seen = rng.normal(size=(6, 20, 3))
+    model = ShapeModel.from_displacements(mean, displacements, seen=seen)
+    # the same combination of the examples gives each mode and its seen motion
+    flat, seen_flat = displacements.reshape(6, -1), seen.reshape(6, -1)
+    combination = np.linalg.lstsq(flat.T, model.modes.reshape(len(model.modes), -1).T, rcond=None)[0]
+    np.testing.assert_allclose(model.seen_modes.reshape(len(model.modes), -1),
+                               combination.T @ seen_flat, atol=1e-9)
+    same = ShapeModel.from_displacements(mean, displacements, seen=displacements)
+    np.testing.assert_allclose(same.seen_modes, same.modes, atol=1e-12)
+    assert ShapeModel.from_displacements(mean, displacements).seen_modes is None

@@ -206,10 +206,10 @@ class FaceTrackingSession:
 
     def _reset_filters(self):
         # Cut-offs in Hz at rest; beta raises them with speed (rad/s, cm/s, parameter units/s,
-        # px/s). Rotation: 1 deg of jitter is halved at rest while a 45 deg/s turn lags about 2 deg
-        # (measured on test_live's synthetic take).
+        # px/s). Rotation: 4 Hz at rest, where the fit's error is mostly slow (an expression
+        # read as a turn), so 1 Hz mostly added lag (rendered takes, docs/method.md §11).
         self._filters = {
-            "rotation": RotationFilter(min_cutoff=1.0, beta=10.0),
+            "rotation": RotationFilter(min_cutoff=4.0, beta=10.0),
             "translation": OneEuroFilter(min_cutoff=1.0, beta=2.0),
             "params": OneEuroFilter(min_cutoff=2.0, beta=5.0),
             "landmarks": LandmarkFilter(min_cutoff=1.5, beta=0.05),

@@ -96,29 +96,39 @@ class ShapeModel:
     # the direction from pose_centre (3,) to the camera; None: no slide.
     pose_offsets: np.ndarray = None
     pose_centre: np.ndarray = None
+    # How the image model's points move with each mode (K, n, 3), where that differs from the
+    # modes (what the fit compares with the image; shape() stays the modes); None: as the modes.
+    seen_modes: np.ndarray = None
 
     @classmethod
     def from_displacements(cls, mean, displacements, energy=0.9999, max_modes=60,
-                           weight_second_moment=1.0 / 3.0, triangles=None):
+                           weight_second_moment=1.0 / 3.0, triangles=None, seen=None):
         """PCA about the mean of example displacements (E, n, 3) (e.g. expressions at the landmarks).
 
         The examples are variations about the mean (a neutral face), so the PCA is not centred.
         They are taken as blendshapes each used independently with weights of second moment
         `weight_second_moment` (1/3: uniform in 0..1), so the covariance is that times
         sum_e d_e d_e^T (not divided by E: a face uses many shapes at once).
-        Keeps the leading modes that explain `energy` of the variation.
+        Keeps the leading modes that explain `energy` of the variation. seen (E, n, 3): how the
+        image model's points move with each example; each mode is seen as the same combination
+        of them (seen_modes).
         """
         mean = np.asarray(mean, dtype=np.float64)
         d = np.asarray(displacements, dtype=np.float64).reshape(len(displacements), -1)
         if d.shape[1] != mean.size:
             raise ExCloneError(f"displacements have {d.shape[1] // 3} points, the mean has {len(mean)}")
-        _, s, vt = np.linalg.svd(d, full_matrices=False)
+        u, s, vt = np.linalg.svd(d, full_matrices=False)
         variance = weight_second_moment * s ** 2
         if variance.sum() <= 0:
             raise ExCloneError("the example shapes do not move any landmark")
         explained = np.cumsum(variance) / variance.sum()
         k = min(int(np.searchsorted(explained, energy)) + 1, max_modes, len(s))
-        return cls(mean, vt[:k].reshape(k, -1, 3), variance[:k], triangles)
+        seen_modes = None
+        if seen is not None:
+            # mode j is sum_e u_ej / s_j d_e: the same combination of the seen motion
+            seen_flat = np.asarray(seen, dtype=np.float64).reshape(d.shape)
+            seen_modes = ((u[:, :k] / s[:k]).T @ seen_flat).reshape(k, -1, 3)
+        return cls(mean, vt[:k].reshape(k, -1, 3), variance[:k], triangles, seen_modes=seen_modes)
 
     def shape(self, params):
         return self.mean + np.tensordot(params, self.modes, axes=1)
@@ -127,7 +137,9 @@ class ShapeModel:
         """The same model about another mean (e.g. the actor's calibrated neutral), with its
         first `modes` modes (all by default)."""
         k = len(self.eigenvalues) if modes is None else modes
-        return replace(self, mean=mean, modes=self.modes[:k], eigenvalues=self.eigenvalues[:k])
+        seen = None if self.seen_modes is None else self.seen_modes[:k]
+        return replace(self, mean=mean, modes=self.modes[:k], eigenvalues=self.eigenvalues[:k],
+                       seen_modes=seen)
 
     @staticmethod
     def pose_features(directions):
@@ -216,6 +228,8 @@ class FitResult:
     # (K, K) the shape parameters' block of the last step's normal matrix (prior included): what
     # further observations of the shape add to at this pose (core.material_points)
     shape_normal: np.ndarray = None
+    # the parameters of the model's seen modes at this pose (what placed it), when it has them
+    seen_params: np.ndarray = None
 
     def camera_points(self):
         """(n, 3) the fitted points in camera space (with their slide)."""
@@ -274,8 +288,11 @@ class ShapeFitter:
         k = len(model.eigenvalues)
         self._prior = np.zeros(6 + k)
         self._prior[6:] = self.beta / model.eigenvalues
-        self._modes_flat = model.modes.reshape(k, 3 * len(model.mean))   # (K, 3n)
-        self._point_modes = np.ascontiguousarray(model.modes.transpose(1, 2, 0))   # (n, 3, K)
+        # the points are compared with the image as the image model sees them move
+        seen = model.modes if model.seen_modes is None else model.seen_modes
+        self._modes_flat = seen.reshape(k, 3 * len(model.mean))   # (K, 3n)
+        self._point_modes = np.ascontiguousarray(seen.transpose(1, 2, 0))   # (n, 3, K)
+        self._located_modes = np.ascontiguousarray(model.modes.transpose(1, 2, 0))
 
     def initial_pose(self, points2d, weights):
         """A frontal-facing start: 2D similarity of the mean's (x, -y) onto the points."""
@@ -304,7 +321,8 @@ class ShapeFitter:
         frame's FitResult (warm start)."""
         p, conf, depth = self._checked_points(points2d, weights)
         if previous is not None:
-            rotation, t, b = previous.rotation, previous.translation.copy(), previous.params.copy()
+            rotation, t = previous.rotation, previous.translation.copy()
+            b = (previous.params if previous.seen_params is None else previous.seen_params).copy()
             huber_iterations = 0
         else:
             rotation, t = self.initial_pose(p, conf)
@@ -338,13 +356,34 @@ class ShapeFitter:
             moved = np.abs(jac @ step).max()
             if moved < self.tolerance_px and iteration > huber_iterations:
                 break
-        shape = self.model.shape(b)
         slide = self.model.pose_offset(rotation, t)
+        seen_params, shape_normal = None, normal[6:, 6:]
+        if self.model.seen_modes is not None:
+            seen_params = b
+            b, shape_normal = self._located_params(p, robust, rotation, t, b, slide)
+        shape = self.model.shape(b)
         placed = shape if slide is None else shape + slide
         proj = self.camera.project(rotation.apply(placed) + t)
         dist = np.linalg.norm(proj - p, axis=1)
         return FitResult(rotation, t, b, shape, proj, dist, robust, iteration, scale_px, slide,
-                         normal[6:, 6:])
+                         shape_normal, seen_params)
+
+    def _located_params(self, p, robust, rotation, t, params, slide):
+        """(The modes' own parameters at a pose the seen modes found, their normal matrix): one
+        Gauss-Newton step on the parameters alone from the seen modes' (the pose fixed, the
+        projection is almost linear in them: a second step moves no point by more than 0.002
+        cm), the points weighed as the pose's fit left them."""
+        shape = self.model.shape(params)
+        y = rotation.apply(shape if slide is None else shape + slide) + t
+        diff = self.camera.project(y) - p
+        jac = (self.camera.jacobian(y) @ rotation.as_matrix()) @ self._located_modes
+        root = np.sqrt(np.repeat(robust, 2))
+        weighted = jac.reshape(len(root), -1) * root[:, None]
+        normal = weighted.T @ weighted
+        normal[np.diag_indices_from(normal)] += self._prior[6:]
+        gradient = weighted.T @ (root * diff.reshape(-1)) + self._prior[6:] * params
+        return params - cho_solve(cho_factor(normal, check_finite=False), gradient,
+                                  check_finite=False), normal
 
     def _checked_points(self, points2d, weights):
         """(points (n, 2), confidences, depths (n,) or None): non-finite points get confidence 0
