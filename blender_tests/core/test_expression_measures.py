@@ -86,6 +86,17 @@ def test_upper_lid_moved_down_by_the_open_height_closes_the_gap_along_the_whole_
     assert found["right"]["eyelid_gap_left"] == pytest.approx(1.0)
 
 
+def test_an_upper_lid_dragged_through_the_lower_one_overruns_it():
+    # the upper edge moved down by one and a half open heights stands half an open height below
+    # the lower edge; shut, it meets it; the other eye and a still face read 0
+    found = measure_flat(np.stack([upper_lid_down(0.15), upper_lid_down(0.1),
+                                   np.zeros_like(flat_face()[0])]), ["through", "shut", "still"])
+    assert found["through"]["lid_overrun_left"] == pytest.approx(0.5)
+    assert found["through"]["lid_overrun_right"] == 0.0
+    assert found["shut"]["lid_overrun_left"] == pytest.approx(0.0, abs=1e-9)
+    assert found["still"]["lid_overrun_left"] == 0.0
+
+
 def test_a_lid_closed_only_in_its_middle_reads_open_at_its_ends():
     delta = np.zeros_like(flat_face()[0])
     for x in (0.35, 0.4, 0.45):            # the middle stations' neighbours only

@@ -205,3 +205,36 @@ def test_a_coarse_eye_closes_where_the_rows_are_straight_between_their_own_verti
         closed[vertex, 1] += moves[eye.ids == vertex].mean()
     left = lids_gaps(lids, closed) / lids.rest
     assert np.abs(left).max() < 0.1, left         # the issue's bar (10.8% before, 6.0%)
+
+
+def test_the_lids_thickness_behind_their_edges_is_carried_with_them():
+    # behind each row: a vertex of the lid's thickness (a tenth of the open height behind the
+    # edge, towards the opening's middle) is carried with the row at its station; the skin
+    # beyond the edge, a socket's wall deep behind it, the corner where the rows meet and what
+    # lies past the rows' ends are not
+    (lids, vertices), _, _ = coarse_and_dense_eyes()
+    gap = float(lids_gaps(lids, vertices)[3])           # the open height at station 0.5
+    top = float(expression_measures.row_heights(lids.opening, vertices[lids.upper_margin],
+                                                np.array([0.5]))[0])
+    bottom = float(expression_measures.row_heights(lids.opening, vertices[lids.lower_margin],
+                                                   np.array([0.5]))[0])
+    added = np.array([[0.5, top - 0.1 * gap, -0.1 * gap],        # upper thickness
+                      [0.5, bottom + 0.1 * gap, -0.1 * gap],     # lower thickness
+                      [0.5, top + 0.1 * gap, -0.1 * gap],        # skin above the edge
+                      [0.5, top - 0.1 * gap, -3.0 * gap],        # a socket's wall
+                      [0.03, 0.005, -0.01],                      # the corner's skin
+                      [1.2, 0.0, -0.1 * gap]])                   # past the corner
+    first = len(vertices)
+    vertices = np.vstack([vertices, added])
+    ids, carried = rims._thickness(lids, vertices, np.arange(len(vertices)))
+    assert sorted(ids.tolist()) == [first, first + 1]
+    # the goals of the rows' vertices, upper then lower (the corners on both)
+    upper, lower = len(lids.upper_margin), len(lids.lower_margin)
+    goals = np.random.default_rng(0).normal(size=(upper + lower, 3))
+    for vertex, weights in zip(ids, carried):
+        row, columns = (lids.upper_margin, slice(0, upper)) if vertex == first \
+            else (lids.lower_margin, slice(upper, upper + lower))
+        order = np.argsort(vertices[row, 0])
+        expected = [np.interp(0.5, vertices[row, 0][order], goals[columns][order, axis])
+                    for axis in range(3)]
+        assert weights @ goals == pytest.approx(expected)

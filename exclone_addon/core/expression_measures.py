@@ -2,9 +2,10 @@
 (docs/method.md §13).
 
 Per expression: how far each eye's lids still stand apart (a fraction of their open height at
-rest, at EYE_STATIONS along the whole lid), how much further apart the lips stand than at rest (a
-fraction of the face's diagonal), the worst edge stretch, the triangles turned over, and how far
-anything outside the solved region moved.
+rest, at EYE_STATIONS along the whole lid) and how far the upper lid passes below the lower lid's
+edge (its thickness or skin dragged through it, a notch), how much further apart the lips stand
+than at rest (a fraction of the face's diagonal), the worst edge stretch, the triangles turned
+over, and how far anything outside the solved region moved.
 
 An eye's lids are found on the rest target from its corner landmarks and its surface, as a
 person finds them: seen from the front (a headlight render along the face's forward,
@@ -319,6 +320,28 @@ class _Lids:
         return (row_heights(self.opening, positions[self.upper], EYE_STATIONS)
                 - row_heights(self.opening, positions[self.lower], EYE_STATIONS))
 
+    def find_upper_lid(self, vertices, triangles):
+        """The surface's vertices over the opening's upper half at rest (upper_lid): within the
+        measured stations (EYE_STATIONS), above the middle between the rows and no more than
+        EYE_REACH x the width above it: the upper lid's front, its thickness behind the edge and
+        the skin up to the crease."""
+        used = np.unique(triangles)
+        s, h = self.opening.station(vertices[used]), self.opening.height(vertices[used])
+        middle = (row_heights(self.opening, vertices[self.upper], s)
+                  + row_heights(self.opening, vertices[self.lower], s)) / 2
+        self.upper_lid = used[(s >= EYE_STATIONS[0]) & (s <= EYE_STATIONS[-1]) & (h > middle)
+                              & (h <= middle + EYE_REACH * self.opening.width)]
+
+    def overrun(self, positions):
+        """How far the upper lid (upper_lid) passes below the lower lid's edge at its station
+        (the rest frame's up), a share of the mean open height at rest; 0 where it stays above. A
+        closing lid meets the lower one; a lid whose thickness or skin is dragged through it
+        (the rims hold the edge only) shows below it as a notch."""
+        moved = positions[self.upper_lid]
+        lower = row_heights(self.opening, positions[self.lower], self.opening.station(moved))
+        below = lower - self.opening.height(moved)
+        return float(max(below.max(initial=0.0), 0.0) / self.rest.mean())
+
 
 class Openings:
     """The lids of both eyes on the rest target (or why each is missing) and the face's up."""
@@ -348,6 +371,7 @@ class Openings:
             elif np.any(lids.rest <= 0):
                 self.reasons[f"eye_{side}"] = "the eye is closed at rest (no open height)"
             else:
+                lids.find_upper_lid(vertices, triangles)
                 self.lids[f"eye_{side}"] = lids
 
     def made_on(self, vertices, triangles, landmarks):
@@ -379,7 +403,9 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     the landmarks are on); deltas (E, n, 3); landmark_names/ids: the fit's target landmarks;
     solved_vertices: ids the transfer solved (the rest only follow). Each measures dict holds:
     eyelid_gap_left/right (max over the lid's stations of the gap / the gap at rest; 0 closed,
-    1 as at rest, < 0 the lids overlap) and their per-station lists, lip_gap (how much further
+    1 as at rest, < 0 the lids overlap) and their per-station lists, lid_overrun_left/right (how
+    far the upper lid's surface passes below the lower lid's edge, a share of the open height:
+    _Lids.overrun), lip_gap (how much further
     apart the lips stand than at rest / the diagonal), edge_stretch (max deformed / rest edge
     length over the solved triangles' edges),
     flipped_triangles (normals turned by more than 90 degrees), motion_outside (max displacement
@@ -422,9 +448,12 @@ def _opening_measures(openings, positions, diagonal):
         lids, key = openings.lids.get(f"eye_{side}"), f"eyelid_gap_{side}"
         if lids is None:
             found[key], found[f"{key}_reason"] = None, openings.reasons[f"eye_{side}"]
+            found[f"lid_overrun_{side}"] = None
+            found[f"lid_overrun_{side}_reason"] = openings.reasons[f"eye_{side}"]
             continue
         fractions = lids.gaps(positions) / lids.rest
         found[key], found[f"{key}_stations"] = float(fractions.max()), fractions.round(4).tolist()
+        found[f"lid_overrun_{side}"] = lids.overrun(positions)
     if openings.lips is None:
         found["lip_gap"], found["lip_gap_reason"] = None, openings.reasons["mouth"]
     else:

@@ -26,11 +26,13 @@ source's share of its width), so the eye closes as far as the source's does alon
 however tall either lid is. The up goals are then matched together to the rows' gap at every
 station (_closing_together): on a coarse lid the rows are straight between vertices that stand at
 different stations, and vertices that each meet the other row at their own station leave its
-bends open between them. Where the target's rows zigzag (a remeshed face whose rows step
-between the rim and the skin beyond it, which must not travel as the rim does) or the source's
-lids are not found, the goal is the source's motion at the rim vertex's corresponding point (the
-vertex map, _MappedRims), unscaled: exact where the registration is, short where the lids differ
-in height or the registration misses the inner corner.
+bends open between them. The lid's thickness behind its edge (_thickness) takes the edge's goal
+at its station: the lid is carried by its edge, not bent at it. Where the target's rows zigzag
+(a remeshed face whose rows step between the rim and the skin beyond it, which must not travel
+as the rim does) or the source's lids are not found, the goal is the source's motion at the rim
+vertex's corresponding point (the vertex map, _MappedRims), unscaled: exact where the
+registration is, short where the lids differ in height or the registration misses the inner
+corner.
 """
 import numpy as np
 import scipy.sparse as sp
@@ -66,6 +68,17 @@ ROUGH = 0.2
 # kept near its own station goal with this weight against the gap's mean square.
 GAP_STATIONS = 50
 GAP_GOALS = 0.01
+# A lid's thickness behind its edge (the rows' vertices carried with the edge) lies no further
+# behind it than this x the open height at its station: ICT's lids within 0.46 (their edge
+# alone held, the thickness behind the outer half, which the transfer closed where the edge
+# stayed half open, went on down with the edge's correction: 0.58 of the open height below the
+# lower lid, a notch); the MakeHuman heads' lids within 1 and their sockets' walls 2.2-7 behind.
+THICKNESS = 1.0
+# ... and where the lids stand at least this share of their mean open height apart: towards the
+# corners the rows meet and what lies between them is the corner's skin, which the carried
+# thickness pinched (the library's blink onto the MakeHuman child: a triangle turned over at the
+# outer corner, excess stretch 1.54 -> 2.29; with this 1.50, the ICT neutral's lid as without it).
+OPEN = 0.5
 
 
 class RimGoals:
@@ -96,10 +109,18 @@ class RimGoals:
                 and _smooth(source_lids, source_vertices) \
                 else _MappedRims(lids, vertex_map, source_triangles)
             if eye.usable:
+                # the station goals' lid carries its thickness: held by its edge alone, the
+                # thickness behind it keeps the transfer's motion plus the edge's correction
+                eye.thickness, eye.carried = _thickness(lids, region.vertices,
+                                                        np.unique(region.triangles)) \
+                    if isinstance(eye, _StationRims) \
+                    else (np.zeros(0, dtype=np.int64), np.zeros((0, len(eye.ids))))
                 self.eyes.append(eye)
-        self.ids = np.concatenate([eye.ids for eye in self.eyes]) if self.eyes \
+        self.ids = np.concatenate([np.concatenate([eye.ids, eye.thickness])
+                                   for eye in self.eyes]) if self.eyes \
             else np.zeros(0, dtype=np.int64)
-        pulls = np.concatenate([np.full(len(eye.ids), eye.weight) for eye in self.eyes]) \
+        pulls = np.concatenate([np.full(len(eye.ids) + len(eye.thickness), eye.weight)
+                                for eye in self.eyes]) \
             / region.mean_edge_length ** 2 if self.eyes else np.zeros(0)
         self.solve = _Correction(transfer, self.ids, pulls, np.flatnonzero(vertex_map.valid)) \
             if len(self.ids) else None
@@ -113,9 +134,40 @@ class RimGoals:
         for eye in self.eyes:
             moved = result[:, eye.ids]
             # the solved motion kept but along the eye's axes (orthonormal): there, the goal's
-            goals.append(moved + (eye.motion(source_deltas) - moved @ eye.axes.T) @ eye.axes)
+            rim = moved + (eye.motion(source_deltas) - moved @ eye.axes.T) @ eye.axes
+            goals += [rim, np.einsum("tk,ekc->etc", eye.carried, rim)]
         goals = np.concatenate(goals, axis=1)                                   # (E, k, 3)
         return result + self.solve(goals - result[:, self.ids])
+
+
+def _thickness(lids, vertices, used):
+    """(ids, (t, k) weights over the rim rows' vertices, upper then lower) the lids' thickness
+    behind their edges: the surface's vertices (`used`) between a row and the opening's middle
+    at rest, within the row's stations where the lids stand OPEN x their mean open height apart
+    or more, behind the row by no more than THICKNESS x the open height there. Each is carried
+    with its row: its goal the row's goal at its station (linear between the row's vertices)."""
+    opening = lids.opening
+    s, h, z = opening.station(vertices[used]), opening.height(vertices[used]), \
+        opening.depth(vertices[used])
+    upper, lower = lids.upper_margin, lids.lower_margin
+    top = row_heights(opening, vertices[upper], s)
+    bottom = row_heights(opening, vertices[lower], s)
+    middle, gap = (top + bottom) / 2, top - bottom
+    ids, carried = [], []
+    rows = np.concatenate([upper, lower])
+    at = [np.arange(len(upper)), len(upper) + np.arange(len(lower))]
+    for row, sign, edge, columns in ((upper, 1, top, at[0]), (lower, -1, bottom, at[1])):
+        stations = opening.station(vertices[row])
+        along_row = _interpolation(stations, s)
+        depth = along_row @ opening.depth(vertices[row])
+        inside = (s > stations.min()) & (s < stations.max()) & (gap > OPEN * lids.rest.mean()) \
+            & (sign * (h - middle) > 0) & (sign * (edge - h) > 0) \
+            & (z < depth) & (z > depth - THICKNESS * gap) & ~np.isin(used, rows)
+        weights = np.zeros((inside.sum(), len(rows)))
+        weights[:, columns] = along_row[inside]
+        ids.append(used[inside])
+        carried.append(weights)
+    return np.concatenate(ids), np.concatenate(carried)
 
 
 def _smooth(lids, vertices):
