@@ -40,7 +40,7 @@ from scipy.spatial import ConvexHull, QhullError
 
 from . import expression_measures
 from .expression_measures import EYE_STATIONS, row_heights
-from .transfer import EXPRESSIONS_PER_BLOCK, as_columns, as_rows, blocks
+from .transfer import as_columns, as_rows, factorised
 
 # Weight of a rim vertex's goal per unit of squared target edge length (the region's mean). From
 # the source's rows: smooth goals, met up to a floating head's common translation (the measured
@@ -323,84 +323,37 @@ class _MappedRims:
 
 
 class _Correction:
-    """The correction c of the module docstring, on the transfer's own factorisation: made with
-    one back-substitution column per rim vertex, then one back-substitution per call.
+    """The correction c of the module docstring: with A = G^T W G (the transfer's normal matrix,
+    its whisper of regularisation included), P the rim vertices' pulls (diagonal), S their rows
+    and r their offsets, c solves (A + S^T P S) c = S^T P r, factorised once per fit; each block
+    of expressions then costs one back-substitution. The goals set the shape, not where a
+    floating part sits: its translation is then set as the transfer sets it (no mean motion at
+    its anchors), else rim goals that differ from the solved motion by a common amount carried
+    the whole face along (the remeshed known case's blink: 350% error).
 
-    With A = G^T W G (the transfer's normal matrix), P the rim vertices' pulls (diagonal), S their
-    rows and r their offsets, c solves (A + S^T P S) c = S^T P r. A is singular only by each
-    connected part's translation (the transfer regularises it by a whisper, see core.transfer),
-    so on the parts that hold a rim and no fixed vertex c = u + T t: T those parts' translations,
-    u = A^+ f the zero-mean answer to balanced forces f = S^T y, and the pulls y (k) and
-    translations t solve the small saddle system (Woodbury's identity with the translations split
-    off)
-
-        [ P^-1 + S A^+ S^T  S T ] [y]   [r]
-        [ (S T)^T           0   ] [t] = [0]
-
-    The goals set the shape, not where a floating part sits: its translation is then set as the
-    transfer sets it (no mean motion at its anchors, the mapped vertices), else rim goals that
-    differ from the solved motion by a common amount carried the whole face along (the remeshed
-    known case's blink: 350% error).
-
-    A second factorisation of A + S^T P S gives the same c (to 1e-7 of the diagonal at 50k
-    target vertices) but costs more: 0.5-0.7 CPU-s to make and 19 MiB held there, against
-    0.3-0.4 CPU-s and the (k + parts)^2 inverse here (166 rim vertices)."""
+    Woodbury's identity on the transfer's own factorisation gives the same c (to 3e-8 of the
+    largest motion) with one back-substitution column per pulled vertex, so its cost grows with
+    the target's density squared: a dense lid's rows and the thickness behind them are hundreds
+    (748 on a 50k-vertex head: its transfer 4.4-5.2 s with them, 3.8-4.5 s with this
+    factorisation, which holds 75-90 MiB more at its peak; at 100k 12.2 s against 9.2 s)."""
 
     def __init__(self, transfer, ids, pull, anchors):
         """transfer: the fit's transfer.Transfer; ids (k,) the rim vertices; pull (k,): P; anchors:
         the vertices that set each floating part's translation in the transfer (the mapped ones)."""
-        self.transfer, self.pull, self.anchors = transfer, pull, anchors
+        self.transfer, self.anchors = transfer, anchors
         self.kept = transfer.free[ids]      # a fixed rim vertex stays held: no goal there
-        self.ids = ids[self.kept]
-        self.rows = (np.cumsum(transfer.free) - 1)[self.ids]           # in the free unknowns
-        self.parts = _floating_parts(transfer, ids[self.kept])
-        self.part_means = (sp.diags(1.0 / np.asarray(self.parts.sum(axis=0)).ravel())
-                           @ self.parts.T).tocsr()
-        # small (k + parts, k + parts) and well conditioned; its inverse is one product a call
-        self.inverse = np.linalg.inv(self._saddle_matrix())
-
-    def _zero_mean(self, values):
-        """values (N_free, m) less each floating part's mean."""
-        return values - self.parts @ (self.part_means @ values)
-
-    def _saddle_matrix(self):
-        k, n_parts = len(self.rows), self.parts.shape[1]
-        compliance = np.empty((k, k))
-        for chunk in blocks(k, 3 * EXPRESSIONS_PER_BLOCK):      # S A^+ S^T, a few columns at a time
-            unit = np.zeros((self.parts.shape[0], chunk.stop - chunk.start))
-            unit[self.rows[chunk], np.arange(unit.shape[1])] = 1.0
-            balanced = self._zero_mean(self.transfer.solve(self._zero_mean(unit)))
-            compliance[:, chunk] = balanced[self.rows]
-        translations = self.parts[self.rows].toarray()                         # S T (k, P)
-        matrix = np.zeros((k + n_parts, k + n_parts))
-        matrix[:k, :k] = (compliance + compliance.T) / 2 + np.diag(1.0 / self.pull[self.kept])
-        matrix[:k, k:] = translations
-        matrix[k:, :k] = translations.T
-        return matrix
+        self.ids, self.pull = ids[self.kept], pull[self.kept]
+        rows = (np.cumsum(transfer.free) - 1)[self.ids]                    # in the free unknowns
+        size = int(transfer.free.sum())
+        # a vertex on both rows (where the lids meet) takes both pulls
+        pins = sp.csc_matrix((self.pull, (rows, rows)), shape=(size, size))
+        _, self.solve = factorised(transfer.normal_matrix() + pins)
 
     def __call__(self, offsets):
         """(E, n, 3) the correction that brings the rim vertices by offsets (E, k, 3), each
         floating part's translation set as the transfer sets it (no mean motion at its anchors)."""
-        k, e = len(self.rows), len(offsets)
-        pulls = (self.inverse[:k, :k] @ as_columns(offsets[:, self.kept]))
+        e = len(offsets)
         forces = np.zeros((len(self.transfer.free), 3 * e))
-        # balanced over each floating part; a vertex on both rows (where the lids meet) takes both
-        np.add.at(forces, self.ids, pulls)
+        np.add.at(forces, self.ids, self.pull[:, None] * as_columns(offsets[:, self.kept]))
         return as_rows(self.transfer.solved(forces, np.zeros((len(self.anchors), 3 * e)),
-                                            self.anchors))
-
-
-def _floating_parts(transfer, ids):
-    """Sparse (N_free x P) indicator of the connected parts that hold a rim vertex of `ids` and
-    no fixed vertex, over the free unknowns (an augmented formulation's 4th vertices belong to
-    their triangle's part): the translations A leaves free."""
-    parts = transfer.parts
-    if transfer.grad.shape[1] > transfer.n:                     # augmented: the 4th vertices
-        parts = np.concatenate([parts, parts[transfer.triangles[:, 0]]])
-    floating = np.setdiff1d(np.unique(parts[ids]), np.unique(parts[transfer.fixed]))
-    column = np.full(int(parts.max(initial=-1)) + 1, -1)
-    column[floating] = np.arange(len(floating))
-    of_free = column[parts[transfer.free]]
-    rows = np.flatnonzero(of_free >= 0)
-    return sp.csr_matrix((np.ones(len(rows)), (rows, of_free[rows])),
-                         shape=(len(of_free), len(floating)))
+                                            self.anchors, solve=self.solve))

@@ -124,12 +124,12 @@ class Transfer:
         self.fixed = _checked_fixed(fixed, self.n)
         self.free = np.ones(self.grad.shape[1], dtype=bool)
         self.free[self.fixed] = False
-        self.factorisation, self.solve = factorised(self._normal_matrix())
+        self.factorisation, self.solve = factorised(self.normal_matrix())
         self.constant = self._constant_rhs(target_vertices, target_triangles, formulation)
         self.parts = vertex_parts(self.n, target_triangles)
         self._part_sums, self._held_parts = self._part_sums_and_held()
 
-    def _normal_matrix(self):
+    def normal_matrix(self):
         """G^T W G on the free unknowns (fixed ones are 0: Dirichlet), with a whisper of
         regularisation that keeps the per-part translations definite (they are set explicitly
         afterwards, see the module docstring)."""
@@ -170,15 +170,17 @@ class Transfer:
         weighted[self.uncovered_rows] = 0.0          # ignored there, whatever they hold
         return self.grad.T @ weighted + np.repeat(self.constant, len(stacked), axis=1)
 
-    def solved(self, rhs, anchor_moves=None, anchor_vertices=None):
+    def solved(self, rhs, anchor_moves=None, anchor_vertices=None, solve=None):
         """(n, 3B) target displacements of right-hand sides rhs (N, 3B); anchor_moves (k, 3B):
         the source's displacement at the corresponding points of target vertices
-        anchor_vertices (k,), to set each covered part's translation."""
+        anchor_vertices (k,), to set each covered part's translation. solve: another system's
+        solve over the free unknowns (default: this one's normal matrix)."""
+        solve = solve or self.solve
         if self.free.all():
-            solution = self.solve(rhs)
+            solution = solve(rhs)
         else:
             solution = np.zeros_like(rhs)
-            solution[self.free] = self.solve(rhs[self.free])
+            solution[self.free] = solve(rhs[self.free])
         return self._anchored(solution[: self.n], anchor_moves, anchor_vertices)
 
     def __call__(self, target_gradients, anchor_displacements=None, anchor_vertices=None):
