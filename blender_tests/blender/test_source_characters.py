@@ -60,7 +60,8 @@ OVERRUN = 0.4          # the upper lid passes below the lower lid's edge by no m
                         # of the open height (expression_measures' lid_overrun): the ICT
                         # neutral's lid thickness dragged through it at the outer half read 0.58
                         # (a notch on front renders) before the rims carried it with the edge
-                        # (core.rims._thickness), 0.15 since; the demo head 0.05-0.06; the child's
+                        # (core.rims._thickness), 0.15 then, 0.26-0.27 with the thickness on
+                        # the source's own left as transferred; the demo head 0.05-0.06; the child's
                         # own closures 0.29, the library's blinks cloned onto the shared heads
                         # 0.05-0.33
 OPEN_EYE = 0.06         # the other eye's gap stays within this of its rest (1)

@@ -27,7 +27,8 @@ however tall either lid is. The up goals are then matched together to the rows' 
 station (_closing_together): on a coarse lid the rows are straight between vertices that stand at
 different stations, and vertices that each meet the other row at their own station leave its
 bends open between them. The lid's thickness behind its edge (_thickness) takes the edge's goal
-at its station: the lid is carried by its edge, not bent at it. Where the target's rows zigzag
+at its station where its image lies off the source's own thickness (_unmatched_thickness): the
+lid is carried by its edge, not bent at it. Where the target's rows zigzag
 (a remeshed face whose rows step between the rim and the skin beyond it, which must not travel
 as the rim does) or the source's lids are not found, the goal is the source's motion at the rim
 vertex's corresponding point (the vertex map, _MappedRims), unscaled: exact where the
@@ -111,8 +112,8 @@ class RimGoals:
             if eye.usable:
                 # the station goals' lid carries its thickness: held by its edge alone, the
                 # thickness behind it keeps the transfer's motion plus the edge's correction
-                eye.thickness, eye.carried = _thickness(lids, region.vertices,
-                                                        np.unique(region.triangles)) \
+                eye.thickness, eye.carried = _unmatched_thickness(
+                    lids, source_lids, region, source_vertices, source_triangles, vertex_map) \
                     if isinstance(eye, _StationRims) \
                     else (np.zeros(0, dtype=np.int64), np.zeros((0, len(eye.ids))))
                 self.eyes.append(eye)
@@ -138,6 +139,21 @@ class RimGoals:
             goals += [rim, np.einsum("tk,ekc->etc", eye.carried, rim)]
         goals = np.concatenate(goals, axis=1)                                   # (E, k, 3)
         return result + self.solve(goals - result[:, self.ids])
+
+
+def _unmatched_thickness(lids, source_lids, region, source_vertices, source_triangles,
+                         vertex_map):
+    """_thickness of the target's lids, less the vertices whose image lies on the source's own
+    lid thickness (the vertex map's nearest corner is one of the source's _thickness): those
+    move as the source's thickness does (a target of the source's own base mesh, vertex by
+    vertex: exactly). Carried with the edge are the others, whose image the registration put on
+    the skin over the source's lid or on none."""
+    ids, carried = _thickness(lids, region.vertices, np.unique(region.triangles))
+    source_thickness, _ = _thickness(source_lids, source_vertices, np.unique(source_triangles))
+    corners = source_triangles[vertex_map.triangle[ids]]
+    nearest = corners[np.arange(len(ids)), np.argmax(vertex_map.bary[ids], axis=1)]
+    unmatched = ~(vertex_map.valid[ids] & np.isin(nearest, source_thickness))
+    return ids[unmatched], carried[unmatched]
 
 
 def _thickness(lids, vertices, used):
