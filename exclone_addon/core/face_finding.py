@@ -35,7 +35,7 @@ from . import data, face_models
 from .errors import ExCloneError
 from .face_render import Camera, Render, render
 from .mesh import PolyMesh, triangle_areas, vertex_normals, vertex_parts, welded
-from .orientation import surface_samples
+from .orientation import mirror_errors, surface_samples
 
 RENDER_SIZE = 512
 # Whole-mesh views, as coefficients of three axes (the mesh's principal axes in the order of
@@ -191,10 +191,7 @@ def _search_axes(vertices, triangles, axes):
     right), then the other two, longest first. A face looks along one of those two: a head along
     its depth (its width, the thinnest, is left to right), a body or a mask along its thinnest."""
     samples, _ = surface_samples(vertices, triangles, count=SYMMETRY_SAMPLES)
-    centre, tree = samples.mean(axis=0), cKDTree(samples)
-    mismatch = [tree.query(samples - 2.0 * ((samples - centre) @ axis)[:, None] * axis)[0].mean()
-                for axis in axes]
-    across = int(np.argmin(mismatch))
+    across = int(np.argmin(mirror_errors(cKDTree(samples), samples.mean(axis=0), axes, samples)))
     others = [k for k in range(3) if k != across]           # longest first
     return axes[[across] + others]
 

@@ -71,6 +71,14 @@ def _mirror(points, normal, offset):
     return points - 2.0 * (points @ normal - offset)[:, None] * normal
 
 
+def mirror_errors(tree, centre, normals, points):
+    """(d,) per unit plane normal (normals (d, 3), planes through `centre`): the mean distance of
+    the points' mirror images to the points the KD-tree `tree` holds."""
+    heights = (points - centre) @ normals.T                                  # (p, d)
+    images = points[None] - 2.0 * heights.T[:, :, None] * normals[:, None]  # (d, p, 3)
+    return tree.query(images.reshape(-1, 3), workers=-1)[0].reshape(len(normals), -1).mean(1)
+
+
 def symmetry_plane(samples, diagonal, surface, candidates=600):
     """Plane (unit normal, offset) with normal . x = offset that best mirrors the surface onto itself.
 
@@ -84,17 +92,11 @@ def symmetry_plane(samples, diagonal, surface, candidates=600):
     dirs = _fibonacci_directions(2 * candidates)
     dirs = dirs[dirs[:, 2] >= 0]                           # a plane normal and its negative are one plane
 
-    def mirror_errors(normals, points):
-        """Mean distance of the points' mirror images to the samples, per plane normal."""
-        heights = (points - centre) @ normals.T                                  # (p, d)
-        images = points[None] - 2.0 * heights.T[:, :, None] * normals[:, None]  # (d, p, 3)
-        return tree.query(images.reshape(-1, 3), workers=-1)[0].reshape(len(normals), -1).mean(1)
-
     # every candidate with a quarter of the probes, then the 50 best with all of them (the best
     # three are the same as with all probes for all: checked on the shared and bundled heads,
     # masks and 3 rotations of each)
-    dirs = dirs[np.argsort(mirror_errors(dirs, probe[::4]))[:50]]
-    starts = dirs[np.argsort(mirror_errors(dirs, probe))[:3]]
+    dirs = dirs[np.argsort(mirror_errors(tree, centre, dirs, probe[::4]))[:50]]
+    starts = dirs[np.argsort(mirror_errors(tree, centre, dirs, probe))[:3]]
     points = samples[:: max(1, len(samples) // 1500)]
     # the starts are independent: two at a time (numpy and the KD-tree release the GIL); after
     # a few steps the best of them goes on alone (ICP creeps: the order is set early)
