@@ -110,8 +110,8 @@ class RimGoals:
                 and _smooth(source_lids, source_vertices) \
                 else _MappedRims(lids, vertex_map, source_triangles)
             if eye.usable:
-                # the station goals' lid carries its thickness: held by its edge alone, the
-                # thickness behind it keeps the transfer's motion plus the edge's correction
+                # the station goals' lid carries its thickness where it maps off the source's:
+                # held by its edge alone, it keeps the transfer's motion plus the edge's correction
                 eye.thickness, eye.carried = _unmatched_thickness(
                     lids, source_lids, region, source_vertices, source_triangles, vertex_map) \
                     if isinstance(eye, _StationRims) \
