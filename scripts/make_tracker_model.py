@@ -7,7 +7,10 @@
    turned up to 35 deg, rendered in background Blender at 640x480 (about 0.35 CPU s a frame,
    cached in --work), and read by FaceMesh as the session reads a camera frame; from those
    points and the known truth, core.tracker_model.learn_tracker_model fits the model's neutral,
-   each expression's point motion and each point's slide with the head's turn.
+   each expression's point motion and each point's slide with the head's turn;
+3. what the iris model reads of the same frames' eyes (cropped from FaceMesh's points, as the
+   session does): core.tracker_model.learn_eye_slide fits how the eyes' frontal reading slides
+   with the head's turn.
 
 Run it after changing the bundled library, the canonical face, the cloning engine or the image
 models; blender_tests/core/test_live.py checks the located points are current.
@@ -25,11 +28,12 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from exclone_addon.core import face_models  # noqa: E402
+from exclone_addon.core import eyes, face_models  # noqa: E402
 from exclone_addon.core.data import TRACKER_MODEL_FILE  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
-from exclone_addon.core.tracker_model import (TrainingFrames, learn_tracker_model,  # noqa: E402
-                                              locate_tracker_landmarks, write_tracker_model)
+from exclone_addon.core.tracker_model import (TrainingFrames, learn_eye_slide,  # noqa: E402
+                                              learn_tracker_model, locate_tracker_landmarks,
+                                              write_tracker_model)
 from exclone_addon.core.tracking import FRONTAL, Camera  # noqa: E402
 
 REPO = Path(__file__).resolve().parent.parent
@@ -108,9 +112,21 @@ def facemesh_points(paths, detector, landmarker):
     return points
 
 
+def eye_measures(paths, points, iris):
+    """(T, 2, eyes.READING_MEASURES) the iris model's reading of each frame's eyes, cropped
+    where FaceMesh's `points` (T, 468, 3) put them; NaN where no face was found."""
+    measures = np.full((len(paths), 2, eyes.READING_MEASURES), np.nan)
+    for k, path in enumerate(paths):
+        if np.all(np.isfinite(points[k])):
+            found = iris.eyes(cv2.imread(str(path)), points[k])
+            measures[k] = eyes.reading_measures(eyes.read_eyes(found))
+    return measures
+
+
 def training_frames(work, identities_file, locations):
     library = load_library()
     detector, landmarker = face_models.FaceDetector(), face_models.FaceLandmarker()
+    iris = face_models.IrisLandmarker()
     parts = []
     for identity in TRAINING_IDENTITIES:
         folder = work / f"v{RECIPE_VERSION}-identity{identity}"
@@ -126,12 +142,19 @@ def training_frames(work, identities_file, locations):
             np.save(cached, points)
             print(f"make_tracker_model: identity {identity}: {len(paths)} frames in "
                   f"{time.time() - start:.0f} s", flush=True)
+        cached_eyes = folder / "eyes.npy"
+        if cached_eyes.is_file():
+            measures = np.load(cached_eyes)
+        else:
+            paths = [folder / f"frame_{k:04d}.png" for k in range(len(points))]
+            measures = eye_measures(paths, points, iris)
+            np.save(cached_eyes, measures)
         weights, rotations, translations, _ = recipe
         centre = locations.sample(vertices).mean(axis=0)
         parts.append(TrainingFrames(
             points=points, weights=weights, rotations=rotations,
             translations=translations - rotations.apply(centre),
-            neutral=locations.sample(vertices)))
+            neutral=locations.sample(vertices), eyes=measures))
     return parts, library
 
 
@@ -148,7 +171,9 @@ def main():
     sys.path.insert(0, str(REPO / "scripts"))     # render_faces
     locations = locate_tracker_landmarks()
     frames, library = training_frames(args.work, args.identities, locations)
-    learned = learn_tracker_model(locations, frames, library, Camera.from_image_size(*IMAGE_SIZE))
+    camera = Camera.from_image_size(*IMAGE_SIZE)
+    learned = learn_tracker_model(locations, frames, library, camera)
+    learned["eye_pose_offsets"] = learn_eye_slide(frames, library.names, camera)
     write_tracker_model(locations, learned)
     print(f"make_tracker_model: wrote {len(locations.corners)} surface locations and the model "
           f"learnt from {sum(len(f.points) for f in frames)} rendered frames to {TRACKER_MODEL_FILE}")

@@ -130,3 +130,52 @@ def test_geometry_brings_a_turned_heads_reading_back_to_frontal(turn):
     np.testing.assert_allclose(frontal.iris - centres, [gaze, gaze], atol=1e-6)
     if turn[0]:
         assert np.abs(reading.iris - centres - gaze).max() > 0.03
+
+
+def test_the_learnt_slide_is_taken_off_the_frontal_reading():
+    """A geometry with an EyeSlide reads frontal what one without it reads, less the slide at
+    the pose; facing the camera the slide is nothing."""
+    from scipy.spatial.transform import Rotation
+    from exclone_addon.core import data
+    from exclone_addon.core.tracking import FRONTAL, POSE_FEATURES, Camera
+    shape = data.canonical_face().vertices
+    camera = Camera.from_image_size(640, 480)
+    offsets = np.random.default_rng(3).normal(0, 0.05, (len(POSE_FEATURES), 2, eyes.READING_MEASURES))
+    slide = eyes.EyeSlide(offsets, shape.mean(axis=0))
+    plain, slid = eyes.EyeGeometry(shape, camera), eyes.EyeGeometry(shape, camera, slide)
+    reading = eyes.EyeReading(np.array([0.15, 0.16]), np.array([-0.1, -0.11]),
+                              np.array([[0.01, 0.02], [-0.01, 0.02]]))
+    centres = np.zeros((2, 2))
+    for turn in ((0, 0, 0), (30, -15, 5)):
+        rotation = Rotation.from_euler("yxz", turn, degrees=True) * FRONTAL
+        translation = np.array([0.0, 0.0, 50.0]) - rotation.apply(shape.mean(axis=0))
+        expected = eyes.reading_measures(plain.frontal(reading, rotation, translation, centres))
+        if turn[0]:
+            expected = expected - slide.at(rotation, translation)
+            assert np.abs(slide.at(rotation, translation)).max() > 0.01
+        else:
+            np.testing.assert_allclose(slide.at(rotation, translation), 0.0, atol=1e-12)
+        found = eyes.reading_measures(slid.frontal(reading, rotation, translation, centres))
+        np.testing.assert_allclose(found, expected, atol=1e-12)
+
+
+def test_a_turned_eyes_lids_count_less():
+    """A head turned 30 degrees: the far eye faces the camera less than the near one, both less
+    than facing it, and the same lid change asks for less of the far eye's key."""
+    from scipy.spatial.transform import Rotation
+    from exclone_addon.core import data
+    from exclone_addon.core.tracking import FRONTAL, Camera
+    geometry = eyes.EyeGeometry(data.canonical_face().vertices, Camera.from_image_size(640, 480))
+    np.testing.assert_allclose(geometry.facing(FRONTAL), 1.0)
+    # turned so that the image-left eye (the subject's right, eye 0) is the far one
+    facing = geometry.facing(Rotation.from_euler("y", 30, degrees=True) * FRONTAL)
+    assert facing[0] < 0.9 and facing[0] < facing[1] <= 1.0, facing
+    # both lower lids up by 0.15 of the opening: the ridge holds each squint back, the far eye's
+    # less trusted reading further
+    names = ["eyeSquint_R", "eyeSquint_L"]
+    solver = WeightSolver(np.zeros((2, 10, 3)), names, ridge=1.0, scale=1.0)
+    targets = eyes.EyeTargets(names, NEUTRAL, key_scale=1.0)
+    squinting = eyes.EyeReading(NEUTRAL.upper, NEUTRAL.lower + 0.15 * NEUTRAL.opening,
+                                NEUTRAL.iris, facing=facing)
+    weights = solver.solve(np.zeros((10, 3)), *targets.rows(squinting))
+    assert weights[0] < weights[1], weights

@@ -9,11 +9,11 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from exclone_addon.core import data
+from exclone_addon.core import data, eyes
 from exclone_addon.core.library import load_library
 from exclone_addon.core.registration import similarity_transform
-from exclone_addon.core.tracker_model import (TrainingFrames, TrackerModel, learn_tracker_model,
-                                              read_tracker_locations)
+from exclone_addon.core.tracker_model import (TrainingFrames, TrackerModel, learn_eye_slide,
+                                              learn_tracker_model, read_tracker_locations)
 from exclone_addon.core.tracking import FRONTAL, POSE_FEATURES, Camera, ShapeFitter, ShapeModel
 
 CAMERA = Camera.from_image_size(640, 480)
@@ -160,3 +160,33 @@ def test_seen_modes_are_the_modes_combinations_of_the_seen_motion():
     same = ShapeModel.from_displacements(mean, displacements, seen=displacements)
     np.testing.assert_allclose(same.seen_modes, same.modes, atol=1e-12)
     assert ShapeModel.from_displacements(mean, displacements).seen_modes is None
+
+
+def test_learning_recovers_a_known_eye_slide():
+    """The known detector's heads and turns, their eyes read as the geometry of each head's
+    neutral sees lids and irises looking ahead that slide with the turn by a known amount (with
+    0.005 eye widths of noise): learn_eye_slide finds the slide."""
+    _, _, _, heads, model_axes = known_detector()
+    rng = np.random.default_rng(8)
+    slide = rng.normal(0, 0.03, (len(POSE_FEATURES), 2, eyes.READING_MEASURES))
+    centre = np.mean([h.neutral for h in heads], axis=0).mean(axis=0)
+    r = eyes.EYE_RADIUS_WIDTHS
+    seen_heads = []
+    for head in heads:
+        geometry = eyes.EyeGeometry(head.neutral, CAMERA)
+        measures = np.empty((len(head.weights), 2, eyes.READING_MEASURES))
+        for k in range(len(measures)):
+            to_camera = -head.rotations[k].inv().apply(head.translations[k]) - centre
+            true = np.array([[0.15, -0.12, 0.0, 0.0]] * 2) + np.tensordot(
+                ShapeModel.pose_features((to_camera @ model_axes.T)[None])[0], slide, axes=1)
+            depth = eyes.IRIS_DEPTH_WIDTHS - r + r * np.sqrt(1.0 - (true[:, 2:] ** 2).sum(axis=1) / r ** 2)
+            measures[k] = [geometry._reading_of(e, geometry._points(
+                true[e, 0], true[e, 1], [*true[e, 2:], depth[e]]), head.rotations[k],
+                head.translations[k]) for e in range(2)]
+        seen_heads.append(replace(head, eyes=measures + rng.normal(0, 0.005, measures.shape)))
+    learned = learn_eye_slide(seen_heads, load_library().names, CAMERA)
+    features = ShapeModel.pose_features(Rotation.from_euler(
+        "yx", rng.uniform(-1, 1, (200, 2)) * [30, 20], degrees=True).apply([0.0, 0.0, 1.0]))
+    error = np.tensordot(features, learned - slide, axes=1)
+    size = np.tensordot(features, slide, axes=1)
+    assert np.abs(error).max() < 0.2 * np.abs(size).max(), (np.abs(error).max(), np.abs(size).max())

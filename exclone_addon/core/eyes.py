@@ -10,7 +10,9 @@ it does not change as the face moves in the image, nearer or farther or rolled. 
 Eye 0 is the image-left eye (the subject's right, ARKit's _R), eye 1 the image-right eye (_L).
 
 A turned head's reading is first brought back to what the eyes would show facing the camera
-(EyeGeometry, through the fitted head pose).
+(EyeGeometry, through the fitted head pose), less what the iris model's reading of a neutral
+face's eyes still does with the head's turn (EyeSlide, learnt at build time from rendered heads
+as the tracker model's points' slide is: core.tracker_model.learn_eye_slide).
 
 Targets, relative to the actor's neutral reading (calibrated with the neutral face), against
 ARKit's eye keys by name (an avatar without them gets no eye rows):
@@ -27,6 +29,8 @@ reads of the eyes overrules what the face's landmarks suggest there.
 from dataclasses import dataclass
 
 import numpy as np
+
+from .tracking import FRONTAL, ShapeModel
 
 # The iris model's contour ids (face_models.EyeLandmarks): corners and the middle of each lid.
 OUTER, INNER = 0, 8
@@ -59,6 +63,15 @@ LID_CHANGES = (("eyeBlink", -0.45, 0.10), ("eyeWide", 0.30, 0.0), ("eyeSquint", 
 OPEN_FRACTION = 0.8
 # How much a target row counts against the landmarks, per unit of a key's mean landmark norm.
 EYE_TRUST = 30.0
+# A turned eye's lid rows count less, by its facing (EyeReading.facing) to this power: the iris
+# model reads a foreshortened eye's lids worse (the far eye of a turned head, partly behind the
+# nose). The power 4 makes the weight about the square of the eye's width in the image against
+# a frontal one's (as conjugate_gaze weighs the gaze): on the rendered turning take (the head up
+# to 30 deg) the far eye's facing reads 0.78 where its width in the image is 0.69 of the frontal.
+# There, after the learnt slide, the far eye's upper lid still read 0.13-0.16 of its opening high
+# at 30 deg (eyeWide_L 0.40, answered by browDown_L 0.86); weighed with power 2: 0.75
+# (browDown_L), the eyes' keys 0.58; with 4: 0.64 (mouthLowerDown_L, not an eye's), 0.56.
+LID_FACING_POWER = 4
 
 
 @dataclass
@@ -68,10 +81,18 @@ class EyeReading:
     lower: np.ndarray     # (2,) lower-lid height (negative: below the line)
     iris: np.ndarray      # (2, 2) iris centre (x towards the image's right, y up)
     width: np.ndarray = None   # (2,) each eye's corner distance in the image, pixels
+    # (2,) how squarely each eye faces the camera (EyeGeometry.facing; 1: as a frontal face's)
+    facing: np.ndarray = None
 
     @property
     def opening(self):
         return self.upper - self.lower
+
+    @classmethod
+    def from_measures(cls, measures):
+        """The reading of (2, READING_MEASURES) measures (reading_measures)."""
+        measures = np.asarray(measures, dtype=np.float64)
+        return cls(measures[:, 0], measures[:, 1], measures[:, 2:])
 
 
 def _eye_frame(left_corner, right_corner):
@@ -110,6 +131,29 @@ def read_eyes(eyes):
 # FaceMesh's corners of each eye in the reading's order (image-left corner, image-right corner).
 FACEMESH_CORNERS = ((33, 133), (362, 263))
 GEOMETRY_ITERATIONS = 3
+# The measures of a frontal reading an EyeSlide moves, per eye: upper lid, lower lid, iris x, y.
+READING_MEASURES = 4
+
+
+def reading_measures(reading):
+    """(2, READING_MEASURES) an EyeReading's measures per eye (EyeSlide's order)."""
+    return np.column_stack((reading.upper, reading.lower, reading.iris))
+
+
+@dataclass(frozen=True)
+class EyeSlide:
+    """How the frontal reading of a neutral face's eyes (EyeGeometry.frontal) still changes with
+    the head's turn: the iris model reads the lids and the iris of a turned eye a little apart
+    from where the geometry puts them (the lids' depth and curve, the nose hiding the far eye's
+    inner corner). Offsets (F, 2, READING_MEASURES) linear in ShapeModel.pose_features of the
+    direction from centre (3,) to the camera (model space), zero facing the camera."""
+    offsets: np.ndarray
+    centre: np.ndarray
+
+    def at(self, rotation, translation):
+        """(2, READING_MEASURES) the slide at a pose (model -> camera)."""
+        to_camera = -rotation.inv().apply(translation) - self.centre
+        return np.tensordot(ShapeModel.pose_features(to_camera[None])[0], self.offsets, axes=1)
 
 
 class EyeGeometry:
@@ -123,12 +167,14 @@ class EyeGeometry:
     narrows the lids' opening against the eye's width.
 
     neutral_shape: (468, 3) the actor's calibrated neutral (model space: +Y up, +Z forward);
-    camera: core.tracking.Camera of the take.
+    camera: core.tracking.Camera of the take; slide: the EyeSlide taken off a frontal reading
+    (None: none).
     """
 
-    def __init__(self, neutral_shape, camera):
+    def __init__(self, neutral_shape, camera, slide=None):
         shape = np.asarray(neutral_shape, dtype=np.float64)
         self.camera = camera
+        self.slide = slide
         corners = shape[np.array(FACEMESH_CORNERS)]                 # (eye, corner, xyz)
         self._origins = corners.mean(axis=1)
         self._widths = np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)
@@ -165,7 +211,7 @@ class EyeGeometry:
         (x, y; the calibrated neutral's iris); None while calibrating: the eyes are taken to
         look ahead and the centres are what is solved for. Both eyes are solved together."""
         r = EYE_RADIUS_WIDTHS
-        measured = np.column_stack((reading.upper, reading.lower, reading.iris))      # (2, 4)
+        measured = reading_measures(reading)      # (2, 4)
         # the eye-frame points of both eyes' unknowns p (2, B, 4)
         if centres is None:       # unknowns: lids and the centre (eyes ahead)
             def points(p):
@@ -186,8 +232,18 @@ class EyeGeometry:
         eye = np.arange(2)[:, None]
         p = _newton(lambda q: self._reading_of(eye, points(q), rotation, translation) - measured[:, None],
                     start)
-        iris = p[:, 2:] if centres is None else centres + p[:, 2:]
-        return EyeReading(p[:, 0], p[:, 1], iris, reading.width)
+        found = np.column_stack((p[:, :2], p[:, 2:] if centres is None else centres + p[:, 2:]))
+        if self.slide is not None:
+            found = found - self.slide.at(rotation, translation)
+        return EyeReading(found[:, 0], found[:, 1], found[:, 2:], reading.width,
+                          self.facing(rotation))
+
+    def facing(self, rotation):
+        """(2,) each eye's corner line's length across the image at this head turn (model ->
+        camera) over its length facing the camera (FRONTAL), at most 1."""
+        axes = self._corners[:, 1] - self._corners[:, 0]
+        seen = np.linalg.norm(rotation.apply(axes)[:, :2], axis=1)
+        return np.minimum(seen / np.linalg.norm(FRONTAL.apply(axes)[:, :2], axis=1), 1.0)
 
 
 def _newton(residual, start, step=1e-4):
@@ -246,21 +302,24 @@ class EyeTargets:
         self._open_gaze = np.zeros((2, 2))
 
     def rows(self, reading):
-        """(rows (k, N), targets (k,)) for one frame's EyeReading: rows @ weights ~ targets; None
-        twice when the avatar has none of the keys."""
+        """(rows (k, N), targets (k,)) for one frame's EyeReading: rows @ weights ~ targets, a
+        turned eye's lid rows weighed down (LID_FACING_POWER); None twice when the avatar has
+        none of the keys."""
         opening0 = np.maximum(self.neutral.opening, 1e-12)
         upper = (reading.upper - self.neutral.upper) / opening0
         lower = (reading.lower - self.neutral.lower) / opening0
         if np.mean(reading.opening / opening0) > OPEN_FRACTION:
             self._open_gaze = conjugate_gaze(reading, self.neutral)
+        lid_trust = np.ones(2) if reading.facing is None else reading.facing ** LID_FACING_POWER
         rows, targets = [], []
         for k, eye_rows in enumerate(self._rows):
             values = (upper[k], lower[k], self._open_gaze[k, 0] / EYE_LOOK_FULL_DEG,
                       self._open_gaze[k, 1] / EYE_LOOK_FULL_DEG)
-            for row, value in zip(eye_rows, values):
+            trust = (lid_trust[k], lid_trust[k], 1.0, 1.0)
+            for row, value, weight in zip(eye_rows, values, trust):
                 if row is not None:
-                    rows.append(row)
-                    targets.append(value)
+                    rows.append(weight * row)
+                    targets.append(weight * value)
         if not rows:
             return None, None
         return self._row_weight * np.array(rows), self._row_weight * np.array(targets)

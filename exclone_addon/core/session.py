@@ -160,6 +160,7 @@ class FaceTrackingSession:
         tracker_model = tracker_model or load_tracker_model()
         self.model = tracker_model.shape_model
         self._depth_weight = tracker_model.depth_weight
+        self._eye_slide = tracker_model.eye_slide
         self._fitter = None           # the canonical model's fitter until calibrated
         self.neutral = None           # (468, 3) the actor's calibrated neutral (model space)
         self.neutral_rotation = None  # mean head pose over the calibration frames
@@ -526,7 +527,7 @@ class FaceTrackingSession:
     def _calibrate_eyes(self, fits):
         """The eyes' neutral: the median of the calibration frames' readings, each brought
         frontal by its own fitted pose (none when the frames had no eye readings)."""
-        self._eye_geometry = EyeGeometry(self.neutral, self.camera)
+        self._eye_geometry = EyeGeometry(self.neutral, self.camera, self._eye_slide)
         frontal = [self._eye_geometry.frontal(reading, fit.rotation, fit.translation)
                    for reading, fit in zip(self._calibration_eyes, fits) if reading is not None]
         self.eye_neutral = eyes.neutral_reading(frontal) if frontal else None

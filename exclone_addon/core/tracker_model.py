@@ -8,6 +8,8 @@ and slide over the face as the head turns. So the shipped model is learnt from w
 reports on ICT heads rendered with known expressions and head turns (learn_tracker_model): its
 neutral and each point's slide with the turn; the modes are the located points' expression
 motion, which the fit sees partly as FaceMesh's points move with each expression.
+The same renders, read by the iris model, teach how the eyes' frontal reading still slides with
+the head's turn (learn_eye_slide, core.eyes.EyeSlide).
 data/tracker_model.npz ships both the locations and the learnt arrays (written by
 scripts/make_tracker_model.py, which renders in background Blender); loading it is a small PCA.
 """
@@ -19,12 +21,13 @@ import numpy as np
 
 from . import data
 from .errors import ExCloneError
+from .eyes import READING_MEASURES, EyeGeometry, EyeReading, EyeSlide, reading_measures
 from .library import load_library
 from .retarget import SurfaceLocations, locate_canonical_face
 from .registration import similarity_transform
 from .tracking import POSE_FEATURES, ShapeModel, expression_shape_model, tukey_weights
 
-TRACKER_MODEL_VERSION = 3
+TRACKER_MODEL_VERSION = 4
 REMEDY = "run scripts/make_tracker_model.py"
 
 
@@ -49,9 +52,12 @@ class TrainingFrames:
     rotations: object           # scipy Rotation (T,): the head (library axes) -> camera
     translations: np.ndarray    # (T, 3) where the library's origin is in camera space
     neutral: np.ndarray         # (468, 3) the located points on this head's neutral
+    # (T, 2, READING_MEASURES) the iris model's reading of each frame's eyes (core.eyes.read_eyes:
+    # eyes.reading_measures; NaN: none), or None
+    eyes: np.ndarray = None
 
 
-LEARNED_ARRAYS = ("mean", "deltas", "seen_deltas", "pose_offsets", "pose_centre")
+LEARNED_ARRAYS = ("mean", "deltas", "seen_deltas", "pose_offsets", "pose_centre", "eye_pose_offsets")
 # How far the learnt model may stray from the located points where the frames say little, as
 # pixel^2 per cm^2 of difference (a pixel is about 0.08 cm on the training renders): the neutral's
 # offsets, the expressions' point motion (from the located motion) and the turn's slide.
@@ -69,6 +75,13 @@ SLIDE_PRIOR = 5.0
 # 0.6 and 0.8 do less for the moving take or cost identity 7 more, all of it (1.0): 1.94 / 3.11
 # (docs/method.md §11).
 SEEN_SHARE = 0.45
+# The eyes' slide is learnt from the frames whose keys leave the eyes alone (their names start
+# with this): a closing lid or a turned eye is not what the turn does to a neutral one.
+EYE_KEY_PREFIX = "eye"
+# Keeps what the frames do not separate (a key's effect on the lids from the turn's) near zero,
+# per unit squared coefficient against the readings' squared residuals (eye widths^2; the
+# readings' noise is about 0.01 widths a frame).
+EYE_SLIDE_PRIOR = 1e-2
 
 
 def learn_tracker_model(locations, frames, library, camera, rounds=2):
@@ -110,6 +123,50 @@ def learn_tracker_model(locations, frames, library, camera, rounds=2):
     return dict(mean=(mean_neutral + offsets) @ to_model + shift, deltas=located_deltas @ to_model,
                 seen_deltas=seen @ to_model, pose_offsets=slide @ to_model,
                 pose_centre=centre @ to_model + shift)
+
+
+def learn_eye_slide(frames, names, camera, rounds=2):
+    """(F, 2, READING_MEASURES) the eyes' slide (core.eyes.EyeSlide's offsets, about the centre
+    and in the axes of learn_tracker_model's pose_offsets) from the frames' eye readings: each
+    frame's reading is brought frontal by the true pose (EyeGeometry on the head's located
+    neutral; the irises' centres the head's median frontal iris), and each measure is fitted by
+    least squares as the head's own value, the frame's keys' linear effect and the slide linear
+    in ShapeModel.pose_features; a second round weighs each frame by its residual (Tukey: a
+    frame the iris model misread counts for nothing). Frames wearing eye keys are left out."""
+    mean_neutral = np.mean([f.neutral for f in frames], axis=0)
+    rot, _, _ = similarity_transform(mean_neutral, data.canonical_face().vertices)
+    centre = mean_neutral.mean(axis=0)
+    eye_keys = np.array([name.startswith(EYE_KEY_PREFIX) for name in names])
+    heads, columns, values = len(frames), [], []
+    for h, part in enumerate(frames):
+        used = np.flatnonzero(np.all(np.isfinite(part.eyes), axis=(1, 2))
+                              & ~np.any(part.weights[:, eye_keys] > 0, axis=1))
+        geometry = EyeGeometry(part.neutral, camera)
+        readings = [EyeReading.from_measures(part.eyes[k]) for k in used]
+        ahead = [geometry.frontal(r, part.rotations[k], part.translations[k])
+                 for r, k in zip(readings, used)]
+        centres = np.median([r.iris for r in ahead], axis=0)
+        values += [reading_measures(geometry.frontal(r, part.rotations[k], part.translations[k],
+                                                     centres)).reshape(-1)
+                   for r, k in zip(readings, used)]
+        to_camera = (-np.einsum("tji,tj->ti", part.rotations[used].as_matrix(),
+                                part.translations[used]) - centre) @ rot.T
+        which = np.zeros((len(used), heads))
+        which[:, h] = 1.0
+        columns.append(np.column_stack((which, part.weights[used][:, ~eye_keys],
+                                        ShapeModel.pose_features(to_camera))))
+    design, values = np.vstack(columns), np.array(values)            # (T, U), (T, 2 * M)
+    size = design.shape[1]
+    prior = np.sqrt(EYE_SLIDE_PRIOR) * np.eye(size)[heads:]
+    weights = np.ones(values.shape)
+    for _ in range(rounds):
+        solved = np.column_stack([np.linalg.lstsq(
+            np.vstack((design * np.sqrt(w)[:, None], prior)),
+            np.concatenate((value * np.sqrt(w), np.zeros(len(prior)))), rcond=None)[0]
+            for value, w in zip(values.T, weights.T)])
+        residual = np.abs(values - design @ solved)
+        weights = tukey_weights(residual, 4.685 * 1.4826 * np.median(residual, axis=0))
+    return solved[size - len(POSE_FEATURES):].reshape(len(POSE_FEATURES), 2, READING_MEASURES)
 
 
 class _LinearRays:
@@ -199,6 +256,7 @@ class TrackerModel:
     shape_model: ShapeModel
     canonical: np.ndarray      # (468, 3) MediaPipe's canonical face
     depth_weight: float = 0.1  # how much FaceMesh's depth counts in the fit (ShapeFitter)
+    eye_slide: EyeSlide = None   # the eyes' reading's slide with the head's turn, if learnt
 
     @classmethod
     def from_learned(cls, learned):
@@ -207,14 +265,17 @@ class TrackerModel:
         (FaceMesh's own, learnt too, moves its points 0.2-0.7 times as far: modes of that read
         the rendered takes worse, docs/method.md §11), seen by the fit SEEN_SHARE of the way
         towards FaceMesh's own. FaceMesh's depth is not read with it: the model says nothing of
-        it."""
+        it. The eyes' slide (learn_eye_slide), when learnt, is measured about the points'
+        centre."""
         canonical = data.canonical_face()
         located, seen = learned["deltas"], learned["seen_deltas"]
         model = ShapeModel.from_displacements(learned["mean"], located,
                                               triangles=canonical.triangles(),
                                               seen=located + SEEN_SHARE * (seen - located))
         return cls(replace(model, pose_offsets=learned["pose_offsets"],
-                           pose_centre=learned["pose_centre"]), canonical.vertices, depth_weight=0.0)
+                           pose_centre=learned["pose_centre"]), canonical.vertices, depth_weight=0.0,
+                   eye_slide=None if learned.get("eye_pose_offsets") is None else
+                   EyeSlide(learned["eye_pose_offsets"], learned["pose_centre"]))
 
     @classmethod
     def from_locations(cls, locations, library=None):
