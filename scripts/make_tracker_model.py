@@ -10,7 +10,9 @@
    each expression's point motion and each point's slide with the head's turn;
 3. what the iris model reads of the same frames' eyes (cropped from FaceMesh's points, as the
    session does): core.tracker_model.learn_eye_slide fits how the eyes' frontal reading slides
-   with the head's turn.
+   with the head's turn;
+4. the model's fit on those frames, and what it still reads wrongly of the head's turn
+   (core.tracker_model.learn_pose_bias).
 
 Run it after changing the bundled library, the canonical face, the cloning engine or the image
 models; blender_tests/core/test_live.py checks the located points are current.
@@ -31,7 +33,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 from exclone_addon.core import eyes, face_models  # noqa: E402
 from exclone_addon.core.data import TRACKER_MODEL_FILE  # noqa: E402
 from exclone_addon.core.library import load_library  # noqa: E402
-from exclone_addon.core.tracker_model import (TrainingFrames, learn_eye_slide,  # noqa: E402
+from exclone_addon.core.tracker_model import (TrackerModel, TrainingFrames,  # noqa: E402
+                                              learn_eye_slide, learn_pose_bias,
                                               learn_tracker_model, locate_tracker_landmarks,
                                               write_tracker_model)
 from exclone_addon.core.tracking import FRONTAL, Camera  # noqa: E402
@@ -174,6 +177,9 @@ def main():
     camera = Camera.from_image_size(*IMAGE_SIZE)
     learned = learn_tracker_model(locations, frames, library, camera)
     learned["eye_pose_offsets"] = learn_eye_slide(frames, library.names, camera)
+    # the bias of the model as it ships (its arrays stored in single precision)
+    shipped = {key: value.astype(np.float32).astype(np.float64) for key, value in learned.items()}
+    learned["pose_bias"] = learn_pose_bias(TrackerModel.from_learned(shipped), frames, camera)
     write_tracker_model(locations, learned)
     print(f"make_tracker_model: wrote {len(locations.corners)} surface locations and the model "
           f"learnt from {sum(len(f.points) for f in frames)} rendered frames to {TRACKER_MODEL_FILE}")

@@ -27,13 +27,17 @@ OTHER_IDENTITY = 7
 # 0.325, 0.056; 0.365, 0.059; 0.517, 0.046. With the model of the located points the learnt one
 # replaced: 0.320, 0.067; 0.343, 0.067.)
 MEASURED_WEIGHTS = {"moving": (0.42, 0.062), "other_identity": (0.47, 0.065), "still": (0.59, 0.05)}
-# Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll):
-# moving 1.45, 2.56, (1.00, 1.02, 1.00); turning 1.42, 2.97, (0.99, 1.01, 1.03);
-# identity 7: 1.55, 3.58, (1.05, 1.03, 1.02). (Before the fit saw the modes as FaceMesh does and
-# with the rotation's filter at 1 Hz: 1.57, 3.23; 1.48, 2.95; 1.52, 4.32. The located points'
-# model with FaceMesh's depth, on the same frames: moving 2.23, 6.43, pitch 0.85; turning 2.47,
-# 6.63, pitch 0.85; identity 7: 2.38, 6.62, pitch 0.86.)
-MEASURED_POSE = {"moving": (1.75, 3.2), "turning": (1.7, 3.5), "other_identity": (1.85, 4.3)}
+# Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll), the fit's
+# learnt rotation bias taken out (core.tracker_model.learn_pose_bias): moving 1.32, 2.88, (1.01,
+# 1.01, 1.00); turning 1.20, 2.80, (1.00, 1.00, 1.02); identity 7: 1.60, 3.64, (1.06, 1.02,
+# 1.01); the head still 0.61, 1.92. (Without it: 1.45, 2.56; 1.42, 2.97; 1.55, 3.58; 0.69,
+# 1.92. Takes not checked here, the bias learnt without them: ICT identities 11, 23, 31 and 42
+# 1.75 / 3.23, 1.35 / 3.07, 1.34 / 3.19, 1.60 / 3.47, without it 1.95 / 3.98, 1.57 / 3.15,
+# 1.51 / 3.16, 1.76 / 3.59. Before the fit saw the modes as FaceMesh does and with the rotation's
+# filter at 1 Hz: 1.57, 3.23; 1.48, 2.95; 1.52, 4.32. The located points' model with FaceMesh's
+# depth, on the same frames: moving 2.23, 6.43, pitch 0.85; turning 2.47, 6.63, pitch 0.85;
+# identity 7: 2.38, 6.62, pitch 0.86.)
+MEASURED_POSE = {"moving": (1.6, 3.2), "turning": (1.5, 3.3), "other_identity": (1.85, 4.3)}
 SLOPE_RANGE = (0.93, 1.09)
 
 
@@ -146,8 +150,20 @@ def test_a_turning_neutral_face_makes_no_expression(turning):
 
 
 def test_head_rotation_reaches_the_target(moving):
-    """Measured: median 1.45 deg, max 2.56 deg, every axis within 0.03 of its scale (before the
-    fit saw the modes as FaceMesh does and with the rotation's filter at 1 Hz: 1.57, 3.23)."""
+    """Measured: median 1.32 deg, max 2.88 deg, every axis within 0.02 of its scale (without the
+    learnt rotation bias 1.45, 2.56; before the fit saw the modes as FaceMesh does and with the
+    rotation's filter at 1 Hz: 1.57, 3.23)."""
     errors, slopes = pose_errors(*moving)
+    assert np.median(errors) <= 1.5 and errors.max() <= 3.0
+    assert np.all(np.abs(slopes - 1) <= 0.05), slopes
+
+
+@pytest.mark.xfail(strict=True, reason="measured: median 1.60 deg, max 3.64 deg, pitch at 1.06 of "
+                                       "its scale: FaceMesh's points read a pucker and a sneer "
+                                       "(frames 87-92, 170-174, the head pitched 14-16 deg) as "
+                                       "3-3.6 deg more pitch, this identity's own, which the "
+                                       "bias learnt from other heads does not hold")
+def test_head_rotation_of_another_identity_reaches_the_target(other_identity):
+    errors, slopes = pose_errors(*other_identity)
     assert np.median(errors) <= 1.5 and errors.max() <= 3.0
     assert np.all(np.abs(slopes - 1) <= 0.05), slopes

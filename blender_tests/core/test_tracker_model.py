@@ -13,8 +13,10 @@ from exclone_addon.core import data, eyes
 from exclone_addon.core.library import load_library
 from exclone_addon.core.registration import similarity_transform
 from exclone_addon.core.tracker_model import (TrainingFrames, TrackerModel, learn_eye_slide,
-                                              learn_tracker_model, read_tracker_locations)
-from exclone_addon.core.tracking import FRONTAL, POSE_FEATURES, Camera, ShapeFitter, ShapeModel
+                                              learn_pose_bias, learn_tracker_model,
+                                              read_tracker_locations)
+from exclone_addon.core.tracking import (FRONTAL, POSE_FEATURES, Camera, ShapeFitter, ShapeModel,
+                                         calibrate_neutral)
 
 CAMERA = Camera.from_image_size(640, 480)
 
@@ -190,3 +192,39 @@ def test_learning_recovers_a_known_eye_slide():
     error = np.tensordot(features, learned - slide, axes=1)
     size = np.tensordot(features, slide, axes=1)
     assert np.abs(error).max() < 0.2 * np.abs(size).max(), (np.abs(error).max(), np.abs(size).max())
+
+
+def test_learnt_rotation_bias_takes_out_a_known_bias():
+    """The made-up detector's heads, their truth told turned about the face's vertical axis by 0.1
+    rad per unit of the direction to the camera's x (up to 3.3 deg: a detector that misreads the
+    turn by a rule the model does not hold, as FaceMesh does with a sneer): the bias learnt from
+    those frames takes it out of the fits' rotations (learnt with a small ridge penalty: the
+    shipped one, chosen on FaceMesh's frames, shrinks the bias by about a quarter). Measured: 1.85
+    deg median -> 0.38 (the fits of the heads' own truth: 0.24 -> 0.16)."""
+    learned, _, _, heads, model_axes = known_detector()
+    tracker = TrackerModel.from_learned(learned)
+    centre = np.mean([h.neutral for h in heads], axis=0).mean(axis=0)
+    told = []
+    for head in heads:
+        to_camera = -head.rotations.inv().apply(head.translations) - centre
+        x = (to_camera @ model_axes.T)[:, 0] / np.linalg.norm(to_camera, axis=1)
+        turn = Rotation.from_rotvec(0.1 * x[:, None] * model_axes[1])     # the model's up axis
+        told.append(replace(head, rotations=head.rotations * turn.inv()))
+    tracker = replace(tracker, pose_bias=learn_pose_bias(tracker, told, CAMERA, ridge=1e-3))
+    fitter = ShapeFitter(tracker.shape_model, CAMERA, depth_weight=0.0)
+    errors = {"fitted": [], "unbiased": []}
+    for head in told:
+        # each head calibrated on its neutral frames, as a session and learn_pose_bias do
+        neutral = ~np.any(head.weights, axis=1)
+        _, actor, calibration = calibrate_neutral(fitter, head.points[neutral])
+        fits = [actor.fit(points) for points in head.points]
+        for name, read in (("fitted", lambda fit: fit.rotation), ("unbiased", tracker.unbiased_rotation)):
+            # the model's axes in the library's: the best alignment of the neutral frames
+            to_library = (head.rotations[neutral].inv()
+                          * Rotation.concatenate([read(fit) for fit in calibration])).mean()
+            errors[name] += [np.degrees(((truth * to_library).inv() * read(fit)).magnitude())
+                             for fit, truth in zip(fits, head.rotations)]
+    fitted, unbiased = (np.median(errors[name]) for name in ("fitted", "unbiased"))
+    print(f"\nrotation error against the told truth: fitted {fitted:.2f} deg median, unbiased "
+          f"{unbiased:.2f} ({max(errors['unbiased']):.2f} max)")
+    assert fitted > 1.0 and unbiased < 0.5

@@ -158,6 +158,7 @@ class FaceTrackingSession:
         # bench_track's take).
         self._iris_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ExClone iris")
         tracker_model = tracker_model or load_tracker_model()
+        self._tracker_model = tracker_model
         self.model = tracker_model.shape_model
         self._depth_weight = tracker_model.depth_weight
         self._eye_slide = tracker_model.eye_slide
@@ -419,6 +420,8 @@ class FaceTrackingSession:
             # after a detection the last frame's points are not this face's
             shown = self._material.fit(None if restart else tracked, fit)
             stage_ms["material"] += 1000 * (time.perf_counter() - start)
+        # the reported turn less the fit's learnt bias (which FaceMesh's fit still places it by)
+        shown = replace(shown, rotation=self._tracker_model.unbiased_rotation(fit))
         # the filters need only the fit: run while the iris model may still be running (on the
         # last calibration frame the calibration replaces the fit and restarts them: after it)
         pose = None if self._pending else self._shown_pose(shown, points, timestamp)
@@ -436,7 +439,8 @@ class FaceTrackingSession:
         stage_ms["eyes"] = 1000 * (time.perf_counter() - start)
         if self._pending:
             fit = self._calibration_frame(observed, reading, fit, stage_ms)
-            pose = self._shown_pose(fit, points, timestamp)
+            pose = self._shown_pose(replace(fit, rotation=self._tracker_model.unbiased_rotation(fit)),
+                                    points, timestamp)
         head_rotation = weights = None
         if self.calibrated:
             relative = self.neutral_rotation.inv() * pose.rotation     # in the face's own axes
@@ -509,7 +513,8 @@ class FaceTrackingSession:
         neutral, fitter, fits = calibrate_neutral(generic, frames)
         self.neutral = neutral
         self._fitter = fitter
-        self.neutral_rotation = Rotation.concatenate([f.rotation for f in fits]).mean()
+        self.neutral_rotation = Rotation.concatenate(
+            [self._tracker_model.unbiased_rotation(f) for f in fits]).mean()
         self._previous_fit, self._fit_before = fits[-1], None
         self._material = None if self._gray is None else MaterialPoints(self._gray, fits[-1], fitter)
         self._calibrate_eyes(fits)

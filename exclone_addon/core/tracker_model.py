@@ -10,6 +10,8 @@ neutral and each point's slide with the turn; the modes are the located points' 
 motion, which the fit sees partly as FaceMesh's points move with each expression.
 The same renders, read by the iris model, teach how the eyes' frontal reading still slides with
 the head's turn (learn_eye_slide, core.eyes.EyeSlide).
+What the fit still reads wrongly of the head's turn on those renders, where it is linear in what
+the fit reports, is learnt too and taken out of the reported rotation (learn_pose_bias).
 data/tracker_model.npz ships both the locations and the learnt arrays (written by
 scripts/make_tracker_model.py, which renders in background Blender); loading it is a small PCA.
 """
@@ -18,6 +20,7 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from . import data
 from .errors import ExCloneError
@@ -25,7 +28,8 @@ from .eyes import READING_MEASURES, EyeGeometry, EyeReading, EyeSlide, reading_m
 from .library import load_library
 from .retarget import SurfaceLocations, locate_canonical_face
 from .registration import similarity_transform
-from .tracking import POSE_FEATURES, ShapeModel, expression_shape_model, tukey_weights
+from .tracking import (POSE_FEATURES, ShapeFitter, ShapeModel, calibrate_neutral,
+                       expression_shape_model, tukey_weights)
 
 TRACKER_MODEL_VERSION = 4
 REMEDY = "run scripts/make_tracker_model.py"
@@ -57,7 +61,8 @@ class TrainingFrames:
     eyes: np.ndarray = None
 
 
-LEARNED_ARRAYS = ("mean", "deltas", "seen_deltas", "pose_offsets", "pose_centre", "eye_pose_offsets")
+LEARNED_ARRAYS = ("mean", "deltas", "seen_deltas", "pose_offsets", "pose_centre", "eye_pose_offsets",
+                  "pose_bias")
 # How far the learnt model may stray from the located points where the frames say little, as
 # pixel^2 per cm^2 of difference (a pixel is about 0.08 cm on the training renders): the neutral's
 # offsets, the expressions' point motion (from the located motion) and the turn's slide.
@@ -82,6 +87,11 @@ EYE_KEY_PREFIX = "eye"
 # per unit squared coefficient against the readings' squared residuals (eye widths^2; the
 # readings' noise is about 0.01 widths a frame).
 EYE_SLIDE_PRIOR = 1e-2
+# The ridge penalty of the rotation's learnt bias (learn_pose_bias), per frame and relative to each
+# feature's variance: chosen by leaving each training head out in turn (the bias learnt from the
+# other 7, the rotation error's median / 95th percentile on the one left out, degrees: none 1.76;
+# 0.01 1.69 / 3.58, 0.1 1.66 / 3.49, 0.3 1.65 / 3.50, 1.0 1.64 / 3.55).
+POSE_BIAS_RIDGE = 0.3
 
 
 def learn_tracker_model(locations, frames, library, camera, rounds=2):
@@ -167,6 +177,38 @@ def learn_eye_slide(frames, names, camera, rounds=2):
         residual = np.abs(values - design @ solved)
         weights = tukey_weights(residual, 4.685 * 1.4826 * np.median(residual, axis=0))
     return solved[size - len(POSE_FEATURES):].reshape(len(POSE_FEATURES), 2, READING_MEASURES)
+def pose_bias_features(model, params, rotation, translation):
+    """(K + F,) what the rotation's learnt bias is linear in: a fit's shape parameters and its
+    pose's features (ShapeModel.pose_features of the direction to the camera, as the slide)."""
+    to_camera = -rotation.inv().apply(translation) - model.pose_centre
+    return np.concatenate((params, ShapeModel.pose_features(to_camera[None])[0]))
+
+
+def learn_pose_bias(tracker, frames, camera, ridge=POSE_BIAS_RIDGE):
+    """(3, K + F) the fit's rotation error (a rotation vector in the head's axes) linear in
+    pose_bias_features, learnt from the training renders (TrainingFrames, docs/method.md §11):
+    each head calibrated on its neutral frames as a session does, each frame fitted afresh by the
+    calibrated tracker (a TrackerModel: the model as shipped), its error against the known turn
+    (the head's axes in the model's are what best aligns the neutral frames' fits); ridge
+    regression with an intercept (penalty `ridge`, POSE_BIAS_RIDGE). What a fit reads wrongly
+    for the expressions' look in FaceMesh's points (a sneer or a pucker read as a pitch) and for
+    the slide the model leaves, as far as that is common to the heads."""
+    rows, errors = [], []
+    for part in frames:
+        found = np.all(np.isfinite(part.points[..., :2]), axis=(1, 2))
+        neutral = np.flatnonzero(found & ~np.any(part.weights, axis=1))
+        fitter = ShapeFitter(tracker.shape_model, camera, depth_weight=tracker.depth_weight)
+        _, actor, fits = calibrate_neutral(fitter, part.points[neutral])
+        to_library = (part.rotations[neutral].inv()
+                      * Rotation.concatenate([fit.rotation for fit in fits])).mean()
+        for k in np.flatnonzero(found):
+            fit = actor.fit(part.points[k])
+            rows.append(pose_bias_features(actor.model, fit.params, fit.rotation, fit.translation))
+            errors.append(((part.rotations[k] * to_library).inv() * fit.rotation).as_rotvec())
+    x = np.column_stack((rows, np.ones(len(rows))))
+    penalty = ridge * len(x) * np.append(np.var(x[:, :-1], axis=0), 0.0)
+    solved = np.linalg.solve(x.T @ x + np.diag(penalty), x.T @ np.array(errors))
+    return solved[:-1].T
 
 
 class _LinearRays:
@@ -257,6 +299,7 @@ class TrackerModel:
     canonical: np.ndarray      # (468, 3) MediaPipe's canonical face
     depth_weight: float = 0.1  # how much FaceMesh's depth counts in the fit (ShapeFitter)
     eye_slide: EyeSlide = None   # the eyes' reading's slide with the head's turn, if learnt
+    pose_bias: np.ndarray = None   # (3, K + F) the fit's learnt rotation bias (learn_pose_bias)
 
     @classmethod
     def from_learned(cls, learned):
@@ -275,7 +318,15 @@ class TrackerModel:
         return cls(replace(model, pose_offsets=learned["pose_offsets"],
                            pose_centre=learned["pose_centre"]), canonical.vertices, depth_weight=0.0,
                    eye_slide=None if learned.get("eye_pose_offsets") is None else
-                   EyeSlide(learned["eye_pose_offsets"], learned["pose_centre"]))
+                   EyeSlide(learned["eye_pose_offsets"], learned["pose_centre"]),
+                   pose_bias=learned.get("pose_bias"))
+
+    def unbiased_rotation(self, fit):
+        """A fit's rotation less its learnt bias (learn_pose_bias); the fit's own without one."""
+        if self.pose_bias is None:
+            return fit.rotation
+        features = pose_bias_features(self.shape_model, fit.params, fit.rotation, fit.translation)
+        return fit.rotation * Rotation.from_rotvec(-(self.pose_bias @ features))
 
     @classmethod
     def from_locations(cls, locations, library=None):
