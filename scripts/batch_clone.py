@@ -333,6 +333,16 @@ def _write_png(path, image):
         raise OSError("OpenCV could not write the image")
 
 
+def empty_factory_scene():
+    """Blender's factory startup file, emptied, with factory preferences. The bpy module reads
+    no user preferences (it starts with the factory ones), so there only the file is read again:
+    read_factory_settings would also re-register every add-on (~0.1 s of a run)."""
+    if bpy.app.binary_path:     # the Blender executable: the user's preferences are loaded
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+    else:
+        bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+
+
 @dataclass
 class Inputs:
     source: object        # core.library.ExpressionLibrary
@@ -345,11 +355,11 @@ def read_inputs(args, paths, timings):
     """Source, target and landmarks, each checked; ExCloneError before any cloning."""
     clock = time.perf_counter()
     if not files.source_is_plain_files(args.source):   # the others are read through Blender
-        bpy.ops.wm.read_factory_settings(use_empty=True)
+        empty_factory_scene()
     source = selected_shapes(files.load_source(args.source), args.shapes)
     timings["read_source"] = time.perf_counter() - clock
     clock = time.perf_counter()
-    bpy.ops.wm.read_factory_settings(use_empty=True)  # the saved file holds only the target
+    empty_factory_scene()  # the saved file holds only the target
     target = files.load_target(args.target)
     timings["read_target"] = time.perf_counter() - clock
     inputs = source_inputs(args.source) + [files.split_spec(args.target)[0] if args.target
