@@ -309,6 +309,26 @@ def track_rendered(take, avatar=None, tracker_model=None):
                            session=session)
 
 
+def track_true_points(take, tracker_model=None):
+    """The known answer past the image models: the take's own head, posed as rendered, sampled
+    at the tracker's points (the shipped locations) and projected by the take's camera, through
+    FaceTrackingSession.step_landmarks onto the same head. Weights as track_rendered's."""
+    locations = read_tracker_locations()
+    centre = locations.sample(take.vertices).mean(axis=0)
+    session = FaceTrackingSession(avatar=ict_avatar(take), camera=take.camera,
+                                  calibration_frames=take.calibration_frames,
+                                  tracker_model=tracker_model)
+    weights = np.full(take.truth.shape, np.nan)
+    index = {name: j for j, name in enumerate(take.names)}
+    for k in range(len(take.truth)):
+        posed = locations.sample(take.vertices + np.tensordot(take.truth[k], take.deltas, axes=1))
+        points = take.camera.project(take.rotations[k].apply(posed - centre) + take.translation)
+        result = session.step_landmarks(points, k / FPS, image_size=IMAGE_SIZE)
+        for name, value in (result.weights or {}).items():
+            weights[k, index[name]] = value
+    return SimpleNamespace(weights=weights, session=session)
+
+
 def unit_scores(take, tracked):
     """Per DRIVEN unit over the frames after calibration: (correlation, mean absolute error);
     a split unit's estimate is the mean of its halves."""
