@@ -17,6 +17,15 @@ of turning, 1.5 px even against the neutral frame warped by the true motion), so
 frame every point is pulled a share of the way to where FaceMesh's fit puts it: FaceMesh holds
 what stays, the flow adds what changes quickly. The head pose stays FaceMesh's fit's (with the
 material points in the pose the rotation's error grew from 1.6 to 1.8-2.7 deg median).
+
+Where FaceMesh's fit puts a point is not where its texture goes as the head turns: on the
+rendered turning take (a neutral face) the points' true projections lie 2.0 px median from it
+(the flow 2.2 px from the truth, the pull holding the two 1.0 px apart), and fed the true
+projections the refit reads the turn as expression (browDown to 1.0). That error follows the
+turn point by point (a linear fit in the turn's sines leaves 0.67 of its 2.17 px rms): the
+located depth (FaceMesh's, 0.33 cm median absolute deviation) and FaceMesh's pose (1.4 deg
+median off). So the refit carries a turn and shift of the material points' own, and each
+point's depth along its calibration ray is refined from its residuals over the take.
 """
 from dataclasses import replace
 
@@ -24,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from .tracking import tukey_weights
+from .tracking import _skew_rows, tukey_weights
 
 # A point is on texture where the image's smaller structure-tensor eigenvalue over 5x5 pixels
 # (cv2.cornerMinEigenVal, Sobel 3) exceeds this: about 140 of the 468 points on a 640x480 render.
@@ -49,9 +58,15 @@ WEIGHT = 20.0
 CROP_MARGIN_PX = 32
 LUCAS_KANADE = dict(winSize=(11, 11), maxLevel=2,
                     criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
-# The face's motion from the frame before (MaterialPoints.motion) is read from at least this many
-# tracked points.
+# The face's motion from the frame before (MaterialPoints.motion), and the points' own turn and
+# shift in the refit, are read from at least this many tracked points.
 MIN_MOTION_POINTS = 10
+# Each point's depth along its calibration ray is refined from its residuals as the head turns,
+# against a prior of (residual spread / depth error spread)^2 in px^2 per cm^2: 1 px against 0.3 cm
+# (the located points' relative depth error on the rendered turning take's calibration: 0.33 cm
+# median absolute deviation). At 50 cm a 10 deg turn moves a point 2.2 px per cm of depth, so the
+# prior weighs about two such frames.
+DEPTH_PRIOR = (1.0 / 0.3) ** 2
 
 
 class MaterialPoints:
@@ -83,6 +98,14 @@ class MaterialPoints:
         self._gray = gray
         self.points = fit.points2d[self.indices].astype(np.float32)
         self.motion = None
+        # each point's ray from the camera at calibration, in the model's axes: along it the
+        # located depth is a guess (FaceMesh's); across it the image placed the point
+        seen = fit.rotation.apply(self.located) + fit.translation
+        self._ray = fit.rotation.inv().apply(seen / np.linalg.norm(seen, axis=1)[:, None])
+        # the depth's least squares over the take so far: sum of slope.slope, of slope.residual
+        self._depth_normal = np.zeros(len(self.indices))
+        self._depth_moment = np.zeros(len(self.indices))
+        self.depth = np.zeros(len(self.indices))     # cm along the ray from the located point
 
     def track(self, gray):
         """(m, 2) the material points in this frame (NaN where not found or not trusted). Sets
@@ -117,27 +140,48 @@ class MaterialPoints:
         """FaceMesh's `fit` with its shape parameters refitted to the material points `tracked`
         (m, 2; NaN: not seen; None: none) too, at its pose: one Gauss-Newton step from the fit's
         optimum, its own normal matrix plus the material points' (the projection is nearly
-        linear in the parameters at a fixed pose; FaceMesh's gradient there is nought). The
-        points then move PULL of the way to where `fit` puts them."""
+        linear in the parameters at a fixed pose; FaceMesh's gradient there is nought).
+
+        The material points' rows carry a small turn and shift of their own, solved beside the
+        shape and dropped: FaceMesh's pose is a degree or two off, and the texture's view of it
+        is not an expression. Each point's depth along its calibration ray is then refined by
+        its residuals (least squares over the take against DEPTH_PRIOR): a depth error moves a
+        point only as the head turns away from calibration's pose, which the shape would read
+        as expression. The points then move PULL of the way to where `fit` puts them."""
         rotation, matrix = fit.rotation, fit.rotation.as_matrix()
         modes = self._modes
-        material = self.located + modes @ fit.params
-        anchor = self._camera.project(rotation.apply(material) + fit.translation)
+        material = self.located + self.depth[:, None] * self._ray + modes @ fit.params
+        turned = rotation.apply(material)
+        anchor = self._camera.project(turned + fit.translation)
         if tracked is None:
             tracked = np.full(anchor.shape, np.nan)
         valid = np.all(np.isfinite(tracked), axis=1)
         params = fit.params
-        if valid.any():
-            camera_points = rotation.apply(material[valid]) + fit.translation
-            jac = ((self._camera.jacobian(camera_points) @ matrix) @ modes[valid]).reshape(-1, len(params))
+        if np.count_nonzero(valid) >= MIN_MOTION_POINTS:
+            size = len(params)
+            projection = self._camera.jacobian(turned[valid] + fit.translation)
+            # d pixels / d [shape, omega, t]: omega turns on the left as in ShapeFitter
+            rigid = np.empty((len(projection), 3, 6))
+            rigid[:, :, :3] = -_skew_rows(turned[valid])
+            rigid[:, :, 3:] = np.eye(3)
+            jac = np.concatenate(((projection @ matrix) @ modes[valid], projection @ rigid),
+                                 axis=2).reshape(-1, size + 6)
             residuals = tracked[valid] - anchor[valid]
             distance = np.linalg.norm(residuals, axis=1)
             scale = max(1.4826 * np.median(distance), self._min_scale_px)
-            weights = WEIGHT * tukey_weights(distance, 4.685 * scale)
-            normal = fit.shape_normal + (jac.T * np.repeat(weights, 2)) @ jac
-            gradient = jac.T @ (residuals * weights[:, None]).reshape(-1)
-            params = params + cho_solve(cho_factor(normal, check_finite=False), gradient,
-                                        check_finite=False)
+            trust = tukey_weights(distance, 4.685 * scale)
+            normal = (jac.T * np.repeat(WEIGHT * trust, 2)) @ jac
+            normal[:size, :size] += fit.shape_normal
+            gradient = jac.T @ (residuals * WEIGHT * trust[:, None]).reshape(-1)
+            step = cho_solve(cho_factor(normal, check_finite=False), gradient, check_finite=False)
+            params = params + step[:size]
+            # the depth: its pixel slope (zero at calibration's pose), against the residual
+            # from the located point's own depth
+            slope = ((projection @ matrix) @ self._ray[valid][:, :, None])[..., 0]
+            from_located = residuals + slope * self.depth[valid, None]
+            self._depth_normal[valid] += trust * np.einsum("ij,ij->i", slope, slope)
+            self._depth_moment[valid] += trust * np.einsum("ij,ij->i", slope, from_located)
+            self.depth = self._depth_moment / (self._depth_normal + DEPTH_PRIOR)
         self.points = np.where(valid[:, None], tracked + PULL * (anchor - tracked),
                                 anchor).astype(np.float32)
         return replace(fit, params=params, shape=self._model.shape(params))
