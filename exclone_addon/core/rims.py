@@ -174,14 +174,17 @@ def _thickness(lids, vertices, used):
     at = [np.arange(len(upper)), len(upper) + np.arange(len(lower))]
     for row, sign, edge, columns in ((upper, 1, top, at[0]), (lower, -1, bottom, at[1])):
         stations = opening.station(vertices[row])
-        along_row = _interpolation(stations, s)
+        # the depth test last, on the few vertices beside the row: its weights are (vertices,
+        # row) and all of the surface's would be most of the rims' set-up
+        near = np.flatnonzero(
+            (s > stations.min()) & (s < stations.max()) & (gap > OPEN * lids.rest.mean())
+            & (sign * (h - middle) > 0) & (sign * (edge - h) > 0) & ~np.isin(used, rows))
+        along_row = _interpolation(stations, s[near])
         depth = along_row @ opening.depth(vertices[row])
-        inside = (s > stations.min()) & (s < stations.max()) & (gap > OPEN * lids.rest.mean()) \
-            & (sign * (h - middle) > 0) & (sign * (edge - h) > 0) \
-            & (z < depth) & (z > depth - THICKNESS * gap) & ~np.isin(used, rows)
+        inside = (z[near] < depth) & (z[near] > depth - THICKNESS * gap[near])
         weights = np.zeros((inside.sum(), len(rows)))
         weights[:, columns] = along_row[inside]
-        ids.append(used[inside])
+        ids.append(used[near[inside]])
         carried.append(weights)
     return np.concatenate(ids), np.concatenate(carried)
 
@@ -363,7 +366,7 @@ class _Correction:
         size = int(transfer.free.sum())
         # a vertex on both rows (where the lids meet) takes both pulls
         pins = sp.csc_matrix((self.pull, (rows, rows)), shape=(size, size))
-        _, self.solve = factorised(transfer.normal_matrix() + pins)
+        _, self.solve = factorised(transfer.normal_matrix + pins)
 
     def __call__(self, offsets):
         """(E, n, 3) the correction that brings the rim vertices by offsets (E, k, 3), each
