@@ -21,7 +21,7 @@ except ImportError:
     ThreadpoolController = threadpool_limits = None
 
 # One BLAS thread was the fastest clone of the library onto a 10k-vertex target, idle and under
-# load, on 2 cores (README, "Speed").
+# load, on 2 cores (docs/measurements.md, "BLAS threads").
 ENGINE_THREADS = 1
 
 
