@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from .tracking import _skew_rows, tukey_weights
+from .tracking import skew_rows, tukey_weights
 
 # A point is on texture where the image's smaller structure-tensor eigenvalue over 5x5 pixels
 # (cv2.cornerMinEigenVal, Sobel 3) exceeds this: about 140 of the 468 points on a 640x480 render.
@@ -162,7 +162,7 @@ class MaterialPoints:
             projection = self._camera.jacobian(turned[valid] + fit.translation)
             # d pixels / d [shape, omega, t]: omega turns on the left as in ShapeFitter
             rigid = np.empty((len(projection), 3, 6))
-            rigid[:, :, :3] = -_skew_rows(turned[valid])
+            rigid[:, :, :3] = -skew_rows(turned[valid])
             rigid[:, :, 3:] = np.eye(3)
             jac = np.concatenate(((projection @ matrix) @ modes[valid], projection @ rigid),
                                  axis=2).reshape(-1, size + 6)

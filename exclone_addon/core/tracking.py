@@ -169,7 +169,7 @@ class ShapeModel:
         by_v[:, 0] = _POWERS_X * x ** np.maximum(_POWERS_X - 1, 0) * y ** _POWERS_Y
         by_v[:, 1] = _POWERS_Y * x ** _POWERS_X * y ** np.maximum(_POWERS_Y - 1, 0)
         by_direction = by_v @ (np.eye(3) - np.outer(v, v)) / length
-        by_pose = np.hstack((-r_t @ _skew_rows(translation[None])[0], -r_t))     # (3, 6)
+        by_pose = np.hstack((-r_t @ skew_rows(translation[None])[0], -r_t))     # (3, 6)
         # the slide and its derivative in one (7, F) @ (F, 3n) product
         both = np.vstack((features, (by_direction @ by_pose).T)) @ offsets
         return both[0].reshape(-1, 3), both[1:].reshape(6, -1, 3).transpose(1, 2, 0)
@@ -237,7 +237,7 @@ class FitResult:
         return self.rotation.apply(shape) + self.translation
 
 
-def _skew_rows(v):
+def skew_rows(v):
     """Cross-product matrices [v]x for each row of v: (n, 3) -> (n, 3, 3)."""
     skew = np.zeros((len(v), 3, 3))
     skew[:, 0, 1], skew[:, 0, 2] = -v[:, 2], v[:, 1]
@@ -425,7 +425,7 @@ class ShapeFitter:
         matrix = rotation.as_matrix()
         # omega perturbs on the left: y = exp(w) R x + t
         pose = np.empty((n, 3, 6))
-        pose[:, :, :3] = -_skew_rows(y - t)
+        pose[:, :, :3] = -skew_rows(y - t)
         pose[:, :, 3:] = np.eye(3)
         if slide_jacobian is not None:
             # R @ each point's (3, 6) block, as one (6n, 3) @ (3, 3) product
