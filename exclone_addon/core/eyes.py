@@ -152,7 +152,7 @@ class EyeSlide:
 
     def at(self, rotation, translation):
         """(2, READING_MEASURES) the slide at a pose (model -> camera)."""
-        to_camera = -rotation.inv().apply(translation) - self.centre
+        to_camera = ShapeModel.camera_offsets(rotation, translation, self.centre)
         return np.tensordot(ShapeModel.pose_features(to_camera[None])[0], self.offsets, axes=1)
 
 

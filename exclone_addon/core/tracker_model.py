@@ -159,8 +159,8 @@ def learn_eye_slide(frames, names, camera, rounds=2):
         values += [reading_measures(geometry.frontal(r, part.rotations[k], part.translations[k],
                                                      centres)).reshape(-1)
                    for r, k in zip(readings, used)]
-        to_camera = (-np.einsum("tji,tj->ti", part.rotations[used].as_matrix(),
-                                part.translations[used]) - centre) @ rot.T
+        to_camera = ShapeModel.camera_offsets(part.rotations[used], part.translations[used],
+                                              centre) @ rot.T
         which = np.zeros((len(used), heads))
         which[:, h] = 1.0
         columns.append(np.column_stack((which, part.weights[used][:, ~eye_keys],
@@ -180,7 +180,7 @@ def learn_eye_slide(frames, names, camera, rounds=2):
 def pose_bias_features(model, params, rotation, translation):
     """(K + F,) what the rotation's learnt bias is linear in: a fit's shape parameters and its
     pose's features (ShapeModel.pose_features of the direction to the camera, as the slide)."""
-    to_camera = -rotation.inv().apply(translation) - model.pose_centre
+    to_camera = ShapeModel.camera_offsets(rotation, translation, model.pose_centre)
     return np.concatenate((params, ShapeModel.pose_features(to_camera[None])[0]))
 
 
@@ -221,7 +221,8 @@ class _LinearRays:
         matrices = part.rotations[np.flatnonzero(seen)].as_matrix()       # (T, 3, 3)
         translations = part.translations[seen]
         # the direction to the camera from the head's centre, in the model's axes
-        to_camera = -np.einsum("tji,tj->ti", matrices, translations) - centre
+        to_camera = ShapeModel.camera_offsets(part.rotations[np.flatnonzero(seen)], translations,
+                                              centre)
         features = ShapeModel.pose_features(to_camera @ rot.T)             # (T, F)
         which = np.zeros((len(points), heads))
         which[:, head] = 1.0

@@ -142,6 +142,12 @@ class ShapeModel:
                        seen_modes=seen)
 
     @staticmethod
+    def camera_offsets(rotation, translation, centre):
+        """(3,) or (T, 3) where the camera is from centre (3,), in the model's axes, for a pose
+        or poses (model -> camera): a scipy Rotation and translation (3,) or (T, 3)."""
+        return -rotation.inv().apply(translation) - centre
+
+    @staticmethod
     def pose_features(directions):
         """(T, F) POSE_FEATURES of directions to the camera (T, 3) in the model's axes."""
         v = np.asarray(directions, dtype=np.float64)
@@ -155,7 +161,7 @@ class ShapeModel:
         if self.pose_offsets is None:
             return None
         r_t = rotation.as_matrix().T
-        to_camera = -r_t @ translation - self.pose_centre
+        to_camera = self.camera_offsets(rotation, translation, self.pose_centre)
         length = np.linalg.norm(to_camera)
         v = to_camera / length
         x, y = v[0], v[1]
