@@ -9,8 +9,9 @@ from .errors import ExCloneError
 POINTS_PER_CHUNK = 8192
 
 
-def _dot(x, y):
-    """Row-wise dot product of component-first arrays (3, ...)."""
+def components_dot(x, y):
+    """Row-wise dot product of component-first arrays (3, ...): a product per coordinate, several
+    times faster than a sum over a strided axis of 3."""
     return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
@@ -20,7 +21,7 @@ def _closest_weights(ap, ab, ac, ab_ab, ab_ac, ac_ac):
     Ericson, Real-Time Collision Detection, 5.1.5, vectorised: ap = p - a, ab, ac component
     first (3, ...); ab_ab, ab_ac, ac_ac the edges' dot products, so two dot products per pair.
     """
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    d1, d2 = components_dot(ab, ap), components_dot(ac, ap)
     d3, d4 = d1 - ab_ab, d2 - ab_ac          # the same against b (bp = ap - ab)
     d5, d6 = d1 - ab_ac, d2 - ac_ac          # and against c
     va = d3 * d6 - d5 * d4
@@ -55,7 +56,8 @@ def closest_points_on_triangles(points, a, b, c):
     """Closest point on triangle (a, b, c) to each point, all (m, 3); returns (closest, bary (m, 3))."""
     a, ab, ac = (np.asarray(x, dtype=np.float64).T for x in (a, b - a, c - a))
     ap = np.asarray(points, dtype=np.float64).T - a
-    v, w = _closest_weights(ap, ab, ac, _dot(ab, ab), _dot(ab, ac), _dot(ac, ac))
+    v, w = _closest_weights(ap, ab, ac, components_dot(ab, ab), components_dot(ab, ac),
+                            components_dot(ac, ac))
     closest = (a + v * ab + w * ac).T
     return closest, np.stack([1 - v - w, v, w], axis=1)
 
@@ -77,7 +79,8 @@ class TriangleSurface:
         self.tree = cKDTree((a + b + c) / 3)
         # per triangle, component first: corner a, edges ab and ac, and their dot products
         self._a, self._ab, self._ac = (np.ascontiguousarray(x.T) for x in (a, b - a, c - a))
-        self._dots = (_dot(self._ab, self._ab), _dot(self._ab, self._ac), _dot(self._ac, self._ac))
+        self._dots = (components_dot(self._ab, self._ab), components_dot(self._ab, self._ac),
+                      components_dot(self._ac, self._ac))
 
     def closest(self, points):
         """Returns (closest points (m,3), triangle ids (m,), distances (m,), barycentric (m,3))."""
@@ -100,7 +103,7 @@ class TriangleSurface:
         ab, ac = self._ab.take(cand, axis=1), self._ac.take(cand, axis=1)
         v, w = _closest_weights(ap, ab, ac, *(d[cand] for d in self._dots))
         offset = ap - v * ab - w * ac                                 # closest point -> point
-        squared = _dot(offset, offset)
+        squared = components_dot(offset, offset)
         best = np.argmin(squared, axis=1)
         rows = np.arange(m)
         v, w = v[rows, best], w[rows, best]

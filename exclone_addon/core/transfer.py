@@ -41,6 +41,7 @@ except ImportError:     # an install without the bundled wheel: SuperLU serves a
 from . import deformation
 from .errors import ExCloneError
 from .mesh import vertex_parts
+from .proximity import components_dot
 
 
 CHOLESKY = "cholesky"
@@ -372,12 +373,8 @@ def _gram(first, second, axis=-1):
     """(3, ...) the Gram matrices' entries (e1.e1, e1.e2, e2.e2) of edge pairs (xyz along axis)."""
     first, second = np.moveaxis(first, axis, 0), np.moveaxis(second, axis, 0)
     # coordinate by coordinate: np.sum over a strided axis of 3 took 1.6x the time
-    return np.stack([_dot(first, first), _dot(first, second), _dot(second, second)])
-
-
-def _dot(first, second):
-    """x1 x2 + y1 y2 + z1 z2 of vectors given xyz first (3, ...)."""
-    return first[0] * second[0] + first[1] * second[1] + first[2] * second[2]
+    return np.stack([components_dot(first, first), components_dot(first, second),
+                     components_dot(second, second)])
 
 
 def _largest_stretch(rest, deformed):
