@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from .tracking import skew_rows, tukey_weights
+from .tracking import TUKEY_CUTOFF, robust_sigma, skew_rows, tukey_weights
 
 # A point is on texture where the image's smaller structure-tensor eigenvalue over 5x5 pixels
 # (cv2.cornerMinEigenVal, Sobel 3) exceeds this: about 140 of the 468 points on a 640x480 render.
@@ -168,8 +168,8 @@ class MaterialPoints:
                                  axis=2).reshape(-1, size + 6)
             residuals = tracked[valid] - anchor[valid]
             distance = np.linalg.norm(residuals, axis=1)
-            scale = max(1.4826 * np.median(distance), self._min_scale_px)
-            trust = tukey_weights(distance, 4.685 * scale)
+            trust = tukey_weights(distance,
+                                  TUKEY_CUTOFF * robust_sigma(distance, self._min_scale_px))
             normal = (jac.T * np.repeat(WEIGHT * trust, 2)) @ jac
             normal[:size, :size] += fit.shape_normal
             gradient = jac.T @ (residuals * WEIGHT * trust[:, None]).reshape(-1)

@@ -28,8 +28,8 @@ from .eyes import READING_MEASURES, EyeGeometry, EyeReading, EyeSlide, reading_m
 from .library import load_library
 from .retarget import SurfaceLocations, locate_canonical_face
 from .registration import similarity_transform
-from .tracking import (POSE_FEATURES, ShapeFitter, ShapeModel, calibrate_neutral,
-                       expression_shape_model, tukey_weights)
+from .tracking import (POSE_FEATURES, TUKEY_CUTOFF, ShapeFitter, ShapeModel, calibrate_neutral,
+                       expression_shape_model, robust_sigma, tukey_weights)
 
 TRACKER_MODEL_VERSION = 4
 REMEDY = "run scripts/make_tracker_model.py"
@@ -61,8 +61,8 @@ class TrainingFrames:
     eyes: np.ndarray = None
 
 
-LEARNED_ARRAYS = ("mean", "deltas", "seen_deltas", "pose_offsets", "pose_centre", "eye_pose_offsets",
-                  "pose_bias")
+LEARNED_ARRAYS = ("mean", "deltas", "seen_deltas", "pose_offsets", "pose_centre",
+                  "eye_pose_offsets", "pose_bias")
 # How far the learnt model may stray from the located points where the frames say little, as
 # pixel^2 per cm^2 of difference (a pixel is about 0.08 cm on the training renders): the neutral's
 # offsets, the expressions' point motion (from the located motion) and the turn's slide.
@@ -94,6 +94,14 @@ EYE_SLIDE_PRIOR = 1e-2
 POSE_BIAS_RIDGE = 0.3
 
 
+def _training_axes(frames):
+    """(the heads' mean located neutral (n, 3), its similarity (rot, scale, shift) onto the
+    canonical face, its centre): the frame the learnt slides are measured in."""
+    mean_neutral = np.mean([f.neutral for f in frames], axis=0)
+    return (mean_neutral, similarity_transform(mean_neutral, data.canonical_face().vertices),
+            mean_neutral.mean(axis=0))
+
+
 def learn_tracker_model(locations, frames, library, camera, rounds=2):
     """The tracker's model learnt from what FaceMesh reports on rendered heads (docs/method.md
     §11): each point p of a frame, in the library's axes, is the located point on that head's
@@ -109,10 +117,7 @@ def learn_tracker_model(locations, frames, library, camera, rounds=2):
     A and the centre it is measured from.
     """
     located_deltas = locations.sample(library.deltas)                  # (E, n, 3)
-    canonical = data.canonical_face().vertices
-    mean_neutral = np.mean([f.neutral for f in frames], axis=0)
-    rot, scale, shift = similarity_transform(mean_neutral, canonical)
-    centre = mean_neutral.mean(axis=0)
+    mean_neutral, (rot, scale, shift), centre = _training_axes(frames)
     n, heads, count = len(mean_neutral), len(frames), len(library.deltas)
     size = heads + count + len(POSE_FEATURES)
     prior = np.repeat(np.concatenate([np.full(heads, OFFSET_PRIOR), np.full(count, MOTION_PRIOR),
@@ -143,9 +148,7 @@ def learn_eye_slide(frames, names, camera, rounds=2):
     least squares as the head's own value, the frame's keys' linear effect and the slide linear
     in ShapeModel.pose_features; a second round weighs each frame by its residual (Tukey: a
     frame the iris model misread counts for nothing). Frames wearing eye keys are left out."""
-    mean_neutral = np.mean([f.neutral for f in frames], axis=0)
-    rot, _, _ = similarity_transform(mean_neutral, data.canonical_face().vertices)
-    centre = mean_neutral.mean(axis=0)
+    _, (rot, _, _), centre = _training_axes(frames)
     eye_keys = np.array([name.startswith(EYE_KEY_PREFIX) for name in names])
     heads, columns, values = len(frames), [], []
     for h, part in enumerate(frames):
@@ -175,7 +178,7 @@ def learn_eye_slide(frames, names, camera, rounds=2):
             np.concatenate((value * np.sqrt(w), np.zeros(len(prior)))), rcond=None)[0]
             for value, w in zip(values.T, weights.T)])
         residual = np.abs(values - design @ solved)
-        weights = tukey_weights(residual, 4.685 * 1.4826 * np.median(residual, axis=0))
+        weights = tukey_weights(residual, TUKEY_CUTOFF * robust_sigma(residual, axis=0))
     return solved[size - len(POSE_FEATURES):].reshape(len(POSE_FEATURES), 2, READING_MEASURES)
 def pose_bias_features(model, params, rotation, translation):
     """(K + F,) what the rotation's learnt bias is linear in: a fit's shape parameters and its
@@ -244,8 +247,8 @@ class _LinearRays:
         under `solved` (n, U, 3)."""
         if robust:
             residual = self.residuals(solved)
-            scale = 1.4826 * np.median(residual, axis=0)
-            self.weights = tukey_weights(residual, 4.685 * np.maximum(scale, 0.5))
+            self.weights = tukey_weights(residual,
+                                         TUKEY_CUTOFF * robust_sigma(residual, 0.5, axis=0))
         count, size = self.unknowns.shape
         pair = np.einsum("tu,tv->tuv", self.unknowns, self.unknowns).reshape(count, -1)
         outer = np.einsum("tnki,tnkj,tn->tnij", self.rows, self.rows, self.weights).reshape(count, -1)

@@ -258,6 +258,16 @@ def tukey_weights(r, c):
     return (1.0 - u * u) ** 2
 
 
+# Tukey's cut-off in robust standard deviations (robust_sigma): 95% efficiency on normal residuals
+TUKEY_CUTOFF = 4.685
+
+
+def robust_sigma(residuals, floor=0.0, axis=None):
+    """A normal spread's standard deviation read from absolute residuals: 1.4826 x their median
+    (along axis), at least floor."""
+    return np.maximum(1.4826 * np.median(residuals, axis=axis), floor)
+
+
 def huber_weights(r, k):
     return np.minimum(1.0, k / np.maximum(r, 1e-12))
 
@@ -414,8 +424,8 @@ class ShapeFitter:
     def _robust_weights(self, diff, conf, huber):
         """(per-point weights, robust residual scale in pixels) from the residuals (n, 2)."""
         dist = np.sqrt((diff * diff).sum(axis=1))
-        scale_px = max(1.4826 * np.median(dist[conf > 0]), self.min_scale_px)
-        robust = conf * tukey_weights(dist, 4.685 * scale_px)
+        scale_px = robust_sigma(dist[conf > 0], self.min_scale_px)
+        robust = conf * tukey_weights(dist, TUKEY_CUTOFF * scale_px)
         if huber or np.count_nonzero(robust) < 6:
             # Huber never rejects a point: safe while the pose is still far off
             robust = conf * huber_weights(dist, 1.345 * scale_px)
@@ -534,8 +544,7 @@ def _neutral_offsets(cam, frames, fits, min_scale_px, stiffness):
     # differs most from the model. The actor's difference is the same in every frame and a
     # wrong detection is not: weigh each point's frames by their distance to its median.
     spread = np.linalg.norm(res - np.median(res, axis=0), axis=2)       # (F, n)
-    mad = np.maximum(1.4826 * np.median(spread, axis=0), min_scale_px)
-    w = tukey_weights(spread, 4.685 * mad)
+    w = tukey_weights(spread, TUKEY_CUTOFF * robust_sigma(spread, min_scale_px, axis=0))
     normal = np.einsum("fnki,fnkj,fn->nij", jac, jac, w) + stiffness * np.eye(3)
     rhs = np.einsum("fnki,fnk,fn->ni", jac, res, w)
     return np.linalg.solve(normal, rhs[..., None])[..., 0]
