@@ -527,8 +527,10 @@ def run_compare(with_trimesh, repeats=2):
     return out
 
 
-def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
-    """trimesh's Sumner-Popovic registration on the engine's region, alignment and landmarks."""
+def trimesh_registration(source, target, src_lm, tgt_lm, src_region, tgt_region, use_faces):
+    """trimesh's Sumner-Popovic registration on the engine's region, alignment and landmarks:
+    ((n_source, 3) the source registered onto the target, nricp_sumner's distance threshold,
+    its seconds)."""
     import trimesh
     import trimesh.registration
     # the same similarity pre-alignment as the engine's (registration.similarity_transform)
@@ -544,11 +546,6 @@ def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
     # nricp_sumner scales the source to unit bbox diagonal (trimesh's mesh.scale); express the
     # engine's closest-point cut-off (max_distance x target diagonal) in those units
     threshold = CloneSettings().max_distance * diag / source_mesh.scale
-    try:
-        import rtree  # noqa: F401  (trimesh's closest point on faces needs it)
-        use_faces = True
-    except ImportError:
-        use_faces = False
     start = time.perf_counter()
     registered = trimesh.registration.nricp_sumner(
         source_mesh, target_mesh, source_landmarks=local[src_lm],
@@ -557,6 +554,19 @@ def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
     seconds = time.perf_counter() - start
     full = aligned.copy()
     full[ids] = registered
+    return full, threshold, seconds
+
+
+def run_trimesh(source, target, src_lm, tgt_lm, src_region, tgt_region):
+    """trimesh's registration (trimesh_registration) and its errors, beside the engine's."""
+    import trimesh
+    try:
+        import rtree  # noqa: F401  (trimesh's closest point on faces needs it)
+        use_faces = True
+    except ImportError:
+        use_faces = False
+    full, threshold, seconds = trimesh_registration(source, target, src_lm, tgt_lm, src_region,
+                                                    tgt_region, use_faces)
     return {
         "seconds": round(seconds, 4),
         **registration_errors(full, src_region, target.vertices, tgt_region),
@@ -671,24 +681,9 @@ def data_path_identities():
 def trimesh_registered(source, target, src_lm, tgt_lm):
     """(n_source, 3) the source registered onto the target by trimesh's nricp_sumner (its
     default steps, the engine's landmarks, the same similarity pre-alignment)."""
-    import trimesh
-    import trimesh.registration
     src_region, tgt_region = regions(source, target, src_lm, tgt_lm)
-    rot, scale, shift = similarity_transform(source.vertices[src_lm], target.vertices[tgt_lm])
-    aligned = source.vertices @ rot.T * scale + shift
-    ids = np.unique(src_region)
-    local = np.full(len(source.vertices), -1)
-    local[ids] = np.arange(len(ids))
-    source_mesh = trimesh.Trimesh(aligned[ids], local[src_region], process=False)
-    target_mesh = trimesh.Trimesh(target.vertices, tgt_region, process=False)
-    threshold = CloneSettings().max_distance * diagonal(target.vertices) / source_mesh.scale
-    registered = trimesh.registration.nricp_sumner(
-        source_mesh, target_mesh, source_landmarks=local[src_lm],
-        target_positions=target.vertices[tgt_lm], steps=TRIMESH_STEPS,
-        distance_threshold=threshold, use_faces=False)
-    full = aligned.copy()
-    full[ids] = registered
-    return full
+    return trimesh_registration(source, target, src_lm, tgt_lm, src_region, tgt_region,
+                                use_faces=False)[0]
 
 
 # ---------------------------------------------------------------------------- driver
