@@ -133,11 +133,18 @@ def _draw_measures(layout):
                           f"{found['worst_flipped_triangles']} flipped")
 
 
-def _draw_expressions(layout, settings):
+def _foldout(layout, settings, shown):
+    """A box headed by the boolean property `shown` as a fold-out arrow: the box when it is open,
+    else None."""
     box = layout.box()
-    box.prop(settings, "show_expressions", icon='DOWNARROW_HLT' if settings.show_expressions
-             else 'RIGHTARROW', emboss=False)
-    if settings.show_expressions:
+    is_open = getattr(settings, shown)
+    box.prop(settings, shown, icon='DOWNARROW_HLT' if is_open else 'RIGHTARROW', emboss=False)
+    return box if is_open else None
+
+
+def _draw_expressions(layout, settings):
+    box = _foldout(layout, settings, "show_expressions")
+    if box is not None:
         box.prop(settings, "use_selection")
         box.operator("exclone.refresh_expressions", icon='FILE_REFRESH')
         box.template_list("EXCLONE_UL_expressions", "", settings, "expressions", settings,
@@ -145,10 +152,8 @@ def _draw_expressions(layout, settings):
 
 
 def _draw_options(layout, settings):
-    box = layout.box()
-    box.prop(settings, "show_options", icon='DOWNARROW_HLT' if settings.show_options
-             else 'RIGHTARROW', emboss=False)
-    if settings.show_options:
+    box = _foldout(layout, settings, "show_options")
+    if box is not None:
         box.prop(settings, "preset")
         box.prop(settings, "formulation")
         box.prop(settings, "parts")
