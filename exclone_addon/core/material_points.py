@@ -160,11 +160,13 @@ class MaterialPoints:
         if np.count_nonzero(valid) >= MIN_MOTION_POINTS:
             size = len(params)
             projection = self._camera.jacobian(turned[valid] + fit.translation)
+            # d pixels / d model point (m, 2, 3)
+            by_point = projection @ matrix
             # d pixels / d [shape, omega, t]: omega turns on the left as in ShapeFitter
             rigid = np.empty((len(projection), 3, 6))
             rigid[:, :, :3] = -skew_rows(turned[valid])
             rigid[:, :, 3:] = np.eye(3)
-            jac = np.concatenate(((projection @ matrix) @ modes[valid], projection @ rigid),
+            jac = np.concatenate((by_point @ modes[valid], projection @ rigid),
                                  axis=2).reshape(-1, size + 6)
             residuals = tracked[valid] - anchor[valid]
             distance = np.linalg.norm(residuals, axis=1)
@@ -177,7 +179,7 @@ class MaterialPoints:
             params = params + step[:size]
             # the depth: its pixel slope (zero at calibration's pose), against the residual
             # from the located point's own depth
-            slope = ((projection @ matrix) @ self._ray[valid][:, :, None])[..., 0]
+            slope = (by_point @ self._ray[valid][:, :, None])[..., 0]
             from_located = residuals + slope * self.depth[valid, None]
             self._depth_normal[valid] += trust * np.einsum("ij,ij->i", slope, slope)
             self._depth_moment[valid] += trust * np.einsum("ij,ij->i", slope, from_located)
