@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from .tracking import TUKEY_CUTOFF, robust_sigma, skew_rows, tukey_weights
+from .tracking import TUKEY_CUTOFF, by_model_point, robust_sigma, skew_rows, tukey_weights
 
 # A point is on texture where the image's smaller structure-tensor eigenvalue over 5x5 pixels
 # (cv2.cornerMinEigenVal, Sobel 3) exceeds this: about 140 of the 468 points on a 640x480 render.
@@ -160,8 +160,7 @@ class MaterialPoints:
         if np.count_nonzero(valid) >= MIN_MOTION_POINTS:
             size = len(params)
             projection = self._camera.jacobian(turned[valid] + fit.translation)
-            # d pixels / d model point (m, 2, 3)
-            by_point = projection @ matrix
+            by_point = by_model_point(projection, matrix)
             # d pixels / d [shape, omega, t]: omega turns on the left as in ShapeFitter
             rigid = np.empty((len(projection), 3, 6))
             rigid[:, :, :3] = -skew_rows(turned[valid])

@@ -264,6 +264,13 @@ def skew_rows(v):
     return skew
 
 
+def by_model_point(jacobians, matrix):
+    """(n, 2, 3) d pixels / d camera-space point times a rotation matrix (model -> camera): d
+    pixels / d model point, as one (2n, 3) @ (3, 3) product (a stack of n small products took
+    five times as long)."""
+    return (jacobians.reshape(-1, 3) @ matrix).reshape(jacobians.shape)
+
+
 def tukey_weights(r, c):
     """Tukey biweight: (1 - (r/c)^2)^2 inside c, 0 beyond."""
     u = np.clip(r / c, 0.0, 1.0)
@@ -426,7 +433,7 @@ class ShapeFitter:
         shape = self.model.shape(params)
         y = rotation.apply(shape if slide is None else shape + slide) + t
         diff = self.camera.project(y) - p
-        jac = (self.camera.jacobian(y) @ rotation.as_matrix()) @ self._located_modes
+        jac = by_model_point(self.camera.jacobian(y), rotation.as_matrix()) @ self._located_modes
         root = np.sqrt(np.repeat(robust, 2))
         weighted = jac.reshape(len(root), -1) * root[:, None]
         normal = weighted.T @ weighted
@@ -484,7 +491,7 @@ class ShapeFitter:
         projection = self.camera.jacobian(y)
         jac = np.empty((n, 2, 6 + self._point_modes.shape[2]))
         jac[:, :, :6] = projection @ pose
-        jac[:, :, 6:] = (projection @ matrix) @ self._point_modes
+        jac[:, :, 6:] = by_model_point(projection, matrix) @ self._point_modes
         depth_jac = np.hstack((pose[:, 2], matrix[2] @ self._point_modes)) if with_depth else None
         return jac.reshape(2 * n, -1), depth_jac
 
