@@ -32,6 +32,8 @@ import numpy as np
 
 from .tracking import FRONTAL, ShapeModel
 
+# Image pixels (y down) -> the readings' axes (y up).
+_Y_UP = np.array([1.0, -1.0])
 # The iris model's contour ids (face_models.EyeLandmarks): corners and the middle of each lid.
 OUTER, INNER = 0, 8
 LOWER_LID = (3, 4, 5)
@@ -180,19 +182,27 @@ class EyeGeometry:
         self._widths = np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1)
         self._corners = (corners - self._origins[:, None]) / self._widths[:, None, None]
 
-    def _reading_of(self, k, points, rotation, translation):
+    def _image(self, k, points, matrix, translation):
+        """(..., m, 2) eye k's eye-frame points (..., m, 3) in the image (y up) at a pose (model ->
+        camera: rotation matrix, translation); k as in _reading_of."""
+        origin, width = self._origins[k][..., None, :], self._widths[k][..., None, None]
+        camera_points = (origin + width * points).reshape(-1, 3) @ matrix.T + translation
+        return (self.camera.project(camera_points) * _Y_UP).reshape(points.shape[:-1] + (2,))
+
+    def _reading_of(self, k, points, rotation, translation, corners=None):
         """Eye k's (upper, lower, iris x, iris y) (..., 4) as read_eyes would read the eye's
         corners and the eye-frame points (upper lid, lower lid, iris) (..., 3, 3) seen in this
         pose. k: 0 or 1, or an array of them shaped as points' leading axes (a batch of both
-        eyes' points: all in one projection)."""
+        eyes' points: all in one projection), or broadcasting to them. corners: the eyes'
+        corners in the image (_image of self._corners[k]), the same for every point of a batch
+        of one pose (None: projected here)."""
         points = np.asarray(points, dtype=np.float64)
-        batch = points.shape[:-2]
-        origin, width = self._origins[k][..., None, :], self._widths[k][..., None, None]
-        points = np.concatenate((np.broadcast_to(self._corners[k], batch + (2, 3)), points), axis=-2)
-        camera_points = rotation.apply((origin + width * points).reshape(-1, 3)) + translation
-        image = (self.camera.project(camera_points) * np.array([1.0, -1.0])).reshape(batch + (5, 2))
-        upper, lower, iris = _measure(image[..., 0, :], image[..., 1, :], image[..., 2:3, :],
-                                      image[..., 3:4, :], image[..., 4, :])     # y up
+        matrix = rotation.as_matrix()
+        if corners is None:
+            corners = self._image(k, self._corners[k], matrix, translation)
+        image = self._image(k, points, matrix, translation)
+        upper, lower, iris = _measure(corners[..., 0, :], corners[..., 1, :], image[..., 0:1, :],
+                                      image[..., 1:2, :], image[..., 2, :])
         return np.concatenate((upper[..., None], lower[..., None], iris), axis=-1)
 
     @staticmethod
@@ -230,8 +240,10 @@ class EyeGeometry:
                 return found
             start = np.column_stack((measured[:, :2], measured[:, 2:] - centres))
         eye = np.arange(2)[:, None]
-        p = _newton(lambda q: self._reading_of(eye, points(q), rotation, translation) - measured[:, None],
-                    start)
+        # the corners do not move with the unknowns: projected once
+        corners = self._image(eye, self._corners[eye], rotation.as_matrix(), translation)
+        p = _newton(lambda q: self._reading_of(eye, points(q), rotation, translation, corners)
+                    - measured[:, None], start)
         found = np.column_stack((p[:, :2], p[:, 2:] if centres is None else centres + p[:, 2:]))
         if self.slide is not None:
             found = found - self.slide.at(rotation, translation)
@@ -258,6 +270,11 @@ def _newton(residual, start, step=1e-4):
         values = residual(np.concatenate((p[:, None], p[:, None] + steps), axis=1))
         r = values[:, 0]
         jacobians = np.swapaxes((values[:, 1:] - r[:, None]) / step, 1, 2)
+        try:        # all problems' steps in one call, unless one of them is singular
+            p[going] -= np.linalg.solve(jacobians[going], r[going][..., None])[..., 0]
+            continue
+        except np.linalg.LinAlgError:
+            pass
         for k in np.flatnonzero(going):
             try:
                 p[k] = p[k] - np.linalg.solve(jacobians[k], r[k])

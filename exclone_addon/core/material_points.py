@@ -33,7 +33,7 @@ import cv2
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from .tracking import TUKEY_CUTOFF, robust_sigma, skew_rows, tukey_weights
+from .tracking import TUKEY_CUTOFF, by_model_point, robust_sigma, skew_rows, tukey_weights
 
 # A point is on texture where the image's smaller structure-tensor eigenvalue over 5x5 pixels
 # (cv2.cornerMinEigenVal, Sobel 3) exceeds this: about 140 of the 468 points on a 640x480 render.
@@ -160,11 +160,12 @@ class MaterialPoints:
         if np.count_nonzero(valid) >= MIN_MOTION_POINTS:
             size = len(params)
             projection = self._camera.jacobian(turned[valid] + fit.translation)
+            by_point = by_model_point(projection, matrix)
             # d pixels / d [shape, omega, t]: omega turns on the left as in ShapeFitter
             rigid = np.empty((len(projection), 3, 6))
             rigid[:, :, :3] = -skew_rows(turned[valid])
             rigid[:, :, 3:] = np.eye(3)
-            jac = np.concatenate(((projection @ matrix) @ modes[valid], projection @ rigid),
+            jac = np.concatenate((by_point @ modes[valid], projection @ rigid),
                                  axis=2).reshape(-1, size + 6)
             residuals = tracked[valid] - anchor[valid]
             distance = np.linalg.norm(residuals, axis=1)
@@ -177,7 +178,7 @@ class MaterialPoints:
             params = params + step[:size]
             # the depth: its pixel slope (zero at calibration's pose), against the residual
             # from the located point's own depth
-            slope = ((projection @ matrix) @ self._ray[valid][:, :, None])[..., 0]
+            slope = (by_point @ self._ray[valid][:, :, None])[..., 0]
             from_located = residuals + slope * self.depth[valid, None]
             self._depth_normal[valid] += trust * np.einsum("ij,ij->i", slope, slope)
             self._depth_moment[valid] += trust * np.einsum("ij,ij->i", slope, from_located)

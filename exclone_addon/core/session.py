@@ -54,9 +54,11 @@ SAME_WIDTH_RATIO = 1.4
 CROP_SHIFT = 0.04
 # The per-frame stages timed in FrameResult.stage_ms (calibration adds "calibrate" when it runs):
 # "eyes" reads the iris model's points and brings them frontal, "material" tracks the material
-# points and fits them beside FaceMesh's. The iris model's network runs on its own thread beside
-# "landmarks" (or, when its crops are made again, beside "fit"): the stages add up to more than
-# the step.
+# points and fits them beside FaceMesh's (its flow, with the frame made grey, on the iris
+# model's thread). The iris model's network runs on its own thread beside "landmarks" (or, when
+# its crops are made again, beside "fit"): the stages add up to more than the step. "fit" is the
+# step's own thread's part of the fit: its start from the frame before's fit is made on the iris
+# thread while FaceMesh runs.
 STAGES = ("detect", "landmarks", "iris", "fit", "material", "eyes", "weights")
 
 
@@ -153,9 +155,11 @@ class FaceTrackingSession:
         self.iris = face_models.IrisLandmarker(models_dir)
         # The iris model's network runs on a thread of its own beside FaceMesh and the shape fit
         # (OpenCV's forward pass releases the GIL): a step takes the longer of the two threads'
-        # work, not their sum. The reading of its outputs stays on the step's thread, so the
-        # iris thread seldom waits for the GIL the fit holds (0.4 ms a step less on
-        # bench_track's take).
+        # work, not their sum. Before it that thread does what needs only the frame before:
+        # the material points' flow and the fit's start (ShapeFitter.start_from), while
+        # FaceMesh runs on the step's thread. The reading of its outputs stays on the step's
+        # thread, so the iris thread seldom waits for the GIL the fit holds (0.4 ms a step less
+        # on bench_track's take).
         self._iris_thread = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ExClone iris")
         tracker_model = tracker_model or load_tracker_model()
         self._tracker_model = tracker_model
@@ -300,21 +304,27 @@ class FaceTrackingSession:
     def _step(self, image, timestamp, name):
         self._use_image_size(image.shape[1], image.shape[0], name)
         stage_ms = dict.fromkeys(STAGES, 0.0)
-        self._gray = None if self.still_images else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         # on the iris model's thread while FaceMesh runs on this one: the material points' flow
-        # (it needs only the frames), then the iris network on the eyes of the frame before's
-        # points moved as the flow saw the face move
-        flow_run = early_iris = None
-        if self._material is not None and self._gray is not None:
-            flow_run = self._iris_thread.submit(self._timed_flow, self._gray, self._face_points)
-            if self._face_points is not None:
-                early_iris = self._iris_thread.submit(self._early_iris, image, flow_run)
+        # (it needs only the frames; the frame made grey there too), then the iris network on
+        # the eyes of the frame before's points moved as the flow saw the face move
+        flow_run = early_iris = fit_start = None
+        if self._material is not None and not self.still_images:
+            flow_run = self._iris_thread.submit(self._timed_flow, image, self._face_points)
+        # the fit's start from the frame before's fit (all of it but reading the points), also
+        # there while FaceMesh runs
+        if self._previous_fit is not None and not self.still_images:
+            fit_start = self._iris_thread.submit(self._fitter.start_from, self._warm_start())
+        if flow_run is not None and self._face_points is not None:
+            early_iris = self._iris_thread.submit(self._early_iris, image, flow_run)
         points, detected = self._find_face(image, timestamp, stage_ms)
         self._face_points = points
         flow = None if flow_run is None else flow_run.result()
+        if flow is not None:
+            self._gray = flow[3]
+        else:
+            self._gray = None if self.still_images else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         if points is None:
-            if early_iris is not None:
-                wait([early_iris])
+            wait([run for run in (fit_start, early_iris) if run is not None])
             return self._lost(stage_ms)
         start = time.perf_counter()
         if detected or early_iris is None or not _crops_hold(flow[2], points):
@@ -330,21 +340,22 @@ class FaceTrackingSession:
             roi = face_models.roi_from_landmarks(points)
             self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
             return self._track(points, timestamp, stage_ms, restart=detected, iris_run=iris_run,
-                               flow=flow)
+                               flow=flow, fit_start=fit_start)
         finally:
             wait([iris_run])        # the network is free again when the step returns
 
-    def _timed_flow(self, gray, face_points):
+    def _timed_flow(self, image, face_points):
         """On the iris thread: (the material points tracked into this frame, the milliseconds,
         where the frame before's FaceMesh points `face_points` (or None) moved to by the face's
-        motion the flow saw: None when it saw none)."""
+        motion the flow saw (None when it saw none), the frame in grey)."""
         start = time.perf_counter()
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
         tracked = self._material.track(gray)
         motion = self._material.motion
         moved = None
         if face_points is not None and motion is not None:
             moved = face_points[:, :2] @ motion[:, :2].T + motion[:, 2]
-        return tracked, 1000 * (time.perf_counter() - start), moved
+        return tracked, 1000 * (time.perf_counter() - start), moved, gray
 
     def _early_iris(self, image, flow_run):
         """On the iris thread after the flow (`flow_run`, done by then): _timed_iris on the
@@ -396,10 +407,12 @@ class FaceTrackingSession:
 
     # -- shape fit and calibration (docs/method.md §11), weights (§12)
     def _track(self, points, timestamp, stage_ms, restart, iris_run=None, depth=True,
-               flow=None):
+               flow=None, fit_start=None):
         """iris_run: a Future of _timed_iris or _early_iris (the iris network running beside
         FaceMesh or the fit), or None;
-        flow: what _timed_flow returned (the material points tracked into this frame), or None."""
+        flow: what _timed_flow returned (the material points tracked into this frame), or None;
+        fit_start: a Future of the fit's start from _warm_start() (ShapeFitter.start_from), or
+        None."""
         # the fit reads the points' relative depth (FaceMesh's z) too, when they have one
         observed = points if depth else points[:, :2]
         if restart or self.still_images:
@@ -408,14 +421,16 @@ class FaceTrackingSession:
             if self.still_images:
                 self._previous_fit = None
         start = time.perf_counter()
-        fit = self._fitter.fit(observed, previous=self._warm_start())
+        # after a detection the fit starts from the last one without its motion (_fit_before)
+        previous = self._warm_start() if restart or fit_start is None else fit_start.result()
+        fit = self._fitter.fit(observed, previous=previous)
         self._fit_before, self._previous_fit = self._previous_fit, fit
         stage_ms["fit"] = 1000 * (time.perf_counter() - start)
         shown = fit       # its shape parameters from the material points' fit when there is one
         if self._material is not None and not self._pending:
             tracked = None
             if flow is not None:
-                tracked, stage_ms["material"], _ = flow
+                tracked, stage_ms["material"] = flow[:2]
             start = time.perf_counter()
             # after a detection the last frame's points are not this face's
             shown = self._material.fit(None if restart else tracked, fit)

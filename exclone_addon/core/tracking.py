@@ -243,6 +243,18 @@ class FitResult:
         return self.rotation.apply(shape) + self.translation
 
 
+@dataclass
+class FitStart:
+    """Where a fit starts and its first linearisation there (ShapeFitter.start_from)."""
+    rotation: Rotation
+    translation: np.ndarray
+    params: np.ndarray              # (K,) the seen modes' parameters when the model has them
+    facing: np.ndarray              # (n,) each point's weight for its facing (None: no triangles)
+    points: np.ndarray              # (n, 3) camera space
+    jacobian: np.ndarray            # (2n, 6 + K)
+    depth_jacobian: np.ndarray      # (n, 6 + K), None without a depth weight
+
+
 def skew_rows(v):
     """Cross-product matrices [v]x for each row of v: (n, 3) -> (n, 3, 3)."""
     skew = np.zeros((len(v), 3, 3))
@@ -250,6 +262,13 @@ def skew_rows(v):
     skew[:, 1, 0], skew[:, 1, 2] = v[:, 2], -v[:, 0]
     skew[:, 2, 0], skew[:, 2, 1] = -v[:, 1], v[:, 0]
     return skew
+
+
+def by_model_point(jacobians, matrix):
+    """(n, 2, 3) d pixels / d camera-space point times a rotation matrix (model -> camera): d
+    pixels / d model point, as one (2n, 3) @ (3, 3) product (a stack of n small products took
+    five times as long)."""
+    return (jacobians.reshape(-1, 3) @ matrix).reshape(jacobians.shape)
 
 
 def tukey_weights(r, c):
@@ -331,37 +350,59 @@ class ShapeFitter:
         ty = (dc[1] - self.camera.cy) * depth / self.camera.fy - centre3[1]
         return rotation, np.array([tx, ty, depth - centre3[2]])
 
+    def start_from(self, previous):
+        """FitStart: what a fit warm-started from `previous` (a FitResult: its pose and shape
+        parameters) computes before it reads the points, so that a live step can compute it
+        while the image model is still finding them."""
+        rotation, t = previous.rotation, previous.translation.copy()
+        b = (previous.params if previous.seen_params is None else previous.seen_params).copy()
+        return self._start(rotation, t, b)
+
+    def _start(self, rotation, t, b):
+        shape = self.model.mean + (b @ self._modes_flat).reshape(-1, 3)
+        facing = self.model.facing(shape, rotation, t)
+        facing = None if facing is None else np.clip(facing / FACING_COSINE, 0.0, 1.0)
+        return FitStart(rotation, t, b, facing,
+                        *self._linearised(rotation, t, b, self.depth_weight > 0, shape))
+
+    def _linearised(self, rotation, t, b, with_depth, shape=None):
+        """(camera-space points y (n, 3), d pixels / d [omega, t, b], d depth / d [omega, t, b]
+        or None) of the model at a pose and shape parameters (shape: its points without the
+        slide, when known)."""
+        if shape is None:
+            shape = self.model.mean + (b @ self._modes_flat).reshape(-1, 3)
+        slide = self.model.pose_offset(rotation, t, jacobian=True)
+        if slide is not None:
+            shape = shape + slide[0]
+        y = rotation.apply(shape) + t
+        return (y, *self._jacobians(y, t, rotation, None if slide is None else slide[1],
+                                    with_depth=with_depth))
+
     def fit(self, points2d, weights=None, previous=None):
         """Fit one frame. points2d: (n, 2) pixels, or (n, 3) with each point's relative depth
         (pixels; non-finite: none); weights: optional (n,) confidences; previous: the last
-        frame's FitResult (warm start)."""
+        frame's FitResult (warm start), or start_from's FitStart of it."""
         p, conf, depth = self._checked_points(points2d, weights)
-        if previous is not None:
-            rotation, t = previous.rotation, previous.translation.copy()
-            b = (previous.params if previous.seen_params is None else previous.seen_params).copy()
-            huber_iterations = 0
-        else:
-            rotation, t = self.initial_pose(p, conf)
-            b = np.zeros(len(self.model.eigenvalues))
+        if previous is None:
+            start = self._start(*self.initial_pose(p, conf), np.zeros(len(self.model.eigenvalues)))
             huber_iterations = 4
-        facing = self.model.facing(self.model.mean + (b @ self._modes_flat).reshape(-1, 3),
-                                   rotation, t)
-        if facing is not None:
-            conf = conf * np.clip(facing / FACING_COSINE, 0.0, 1.0)
+        else:
+            start = previous if isinstance(previous, FitStart) else self.start_from(previous)
+            huber_iterations = 0
+        rotation, t, b = start.rotation, start.translation, start.params
+        if start.facing is not None:
+            conf = conf * start.facing
         damping = 1e-3
         robust = conf.copy()
         scale_px = self.min_scale_px
         iteration = 0
         for iteration in range(1, self.max_iterations + 1):
-            shape = self.model.mean + (b @ self._modes_flat).reshape(-1, 3)
-            slide = self.model.pose_offset(rotation, t, jacobian=True)
-            if slide is not None:
-                shape = shape + slide[0]
-            y = rotation.apply(shape) + t
+            if iteration == 1:
+                y, jac, depth_jac = start.points, start.jacobian, start.depth_jacobian
+            else:
+                y, jac, depth_jac = self._linearised(rotation, t, b, depth is not None)
             diff = self.camera.project(y) - p
             robust, scale_px = self._robust_weights(diff, conf, huber=iteration <= huber_iterations)
-            jac, depth_jac = self._jacobians(y, t, rotation, None if slide is None else slide[1],
-                                             with_depth=depth is not None)
             depth_rows = None if depth is None else self._depth_rows(y, t, depth_jac, depth, robust)
             step, normal = self._gauss_newton_step(jac, diff, robust, b, damping, depth_rows)
             rotation = Rotation.from_rotvec(step[:3]) * rotation
@@ -392,11 +433,11 @@ class ShapeFitter:
         shape = self.model.shape(params)
         y = rotation.apply(shape if slide is None else shape + slide) + t
         diff = self.camera.project(y) - p
-        jac = (self.camera.jacobian(y) @ rotation.as_matrix()) @ self._located_modes
+        jac = by_model_point(self.camera.jacobian(y), rotation.as_matrix()) @ self._located_modes
         root = np.sqrt(np.repeat(robust, 2))
         weighted = jac.reshape(len(root), -1) * root[:, None]
         normal = weighted.T @ weighted
-        normal[np.diag_indices_from(normal)] += self._prior[6:]
+        normal.flat[::len(normal) + 1] += self._prior[6:]
         gradient = weighted.T @ (root * diff.reshape(-1)) + self._prior[6:] * params
         return params - cho_solve(cho_factor(normal, check_finite=False), gradient,
                                   check_finite=False), normal
@@ -450,7 +491,7 @@ class ShapeFitter:
         projection = self.camera.jacobian(y)
         jac = np.empty((n, 2, 6 + self._point_modes.shape[2]))
         jac[:, :, :6] = projection @ pose
-        jac[:, :, 6:] = (projection @ matrix) @ self._point_modes
+        jac[:, :, 6:] = by_model_point(projection, matrix) @ self._point_modes
         depth_jac = np.hstack((pose[:, 2], matrix[2] @ self._point_modes)) if with_depth else None
         return jac.reshape(2 * n, -1), depth_jac
 
@@ -482,7 +523,7 @@ class ShapeFitter:
             depth_jac, depth_res, depth_w = depth_rows
             h += (depth_jac.T * depth_w) @ depth_jac
             g += (depth_jac.T * depth_w) @ depth_res
-        h[np.diag_indices_from(h)] += self._prior + damping * np.diag(h)
+        h.flat[::len(h) + 1] += self._prior + damping * h.diagonal()
         g[6:] += self._prior[6:] * params
         return -cho_solve(cho_factor(h, check_finite=False), g, check_finite=False), h
 
