@@ -139,10 +139,14 @@ def _eye_view(vertices, triangles, opening):
     camera = Camera.looking(centre, opening.forward, opening.up, VIEW_WIDTH * opening.width,
                             VIEW_PIXELS)
     near = (vertices - centre) @ opening.forward > -VIEW_DEPTH * opening.width
-    drawn = np.flatnonzero(near[triangles].any(axis=1))
-    # the shading is not looked at: one normal for all spares the mesh's vertex normals
-    seen = render(vertices, triangles[drawn], camera,
-                  normals=np.broadcast_to(opening.forward, vertices.shape))
+    # nor those wholly beyond one side of the image (a pixel's margin): they cover no pixel
+    # centre, but their projection and pixel boxes were most of a dense head's drawing
+    half = 0.5 * VIEW_WIDTH * opening.width + camera.pixel_size
+    across = [(vertices - centre) @ axis / half for axis in camera.axes[:2]]     # right, up
+    outside = np.any([np.all(ends > 1, axis=1) | np.all(ends < -1, axis=1)
+                      for ends in (side[triangles] for side in across)], axis=0)
+    drawn = np.flatnonzero(near[triangles].any(axis=1) & ~outside)
+    seen = render(vertices, triangles[drawn], camera, shaded=False)     # what is seen, not how
     pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
     points, triangle = seen.surface_points(pixels.reshape(-1, 2))
     triangle = np.where(triangle >= 0, drawn[triangle], -1)
@@ -158,11 +162,11 @@ def _edge_pixel(depth, heights, width):
     from the viewer, or no surface: the opening, a fold into a socket, the top of a lid's
     thickness) ends, but no more than NEAR_EDGE x the eye's width (`width`) above where the lid's
     surface begins (after the opening, or a jump in depth from a socket behind): a coarse mesh's
-    lid may be one steep facet up to its crease. None if the column has none."""
-    with np.errstate(invalid="ignore"):
-        step = np.diff(depth)
-        slope = step / np.maximum(np.abs(np.diff(heights)), 1e-300)
-        jump = step > OPEN_DEPTH * width        # from a socket far behind onto the lid
+    lid may be one steep facet up to its crease. None if the column has none. Called within
+    np.errstate(invalid="ignore"): no surface is depth -inf, and its steps are NaN."""
+    step = np.diff(depth)
+    slope = step / np.maximum(np.abs(np.diff(heights)), 1e-300)
+    jump = step > OPEN_DEPTH * width        # from a socket far behind onto the lid
     opening = ~np.isfinite(depth)
     steep = ((np.isnan(slope) | (slope > STEEP)) & ~opening[1:]) | opening[:-1]
     first = int(np.argmax(steep))
@@ -188,27 +192,29 @@ def _seen_margin(vertices, triangles, opening):
     stations = opening.station(lines[:VIEW_PIXELS])          # the first row: one per column
     heights = opening.height(lines).reshape(VIEW_PIXELS, VIEW_PIXELS)
     found, edges, through = ([], []), ([], []), []
-    for column in np.flatnonzero((stations > 0.05) & (stations < 0.95)):
-        seen = 0
-        for sign, row, edge_points in ((1, found[0], edges[0]), (-1, found[1], edges[1])):
-            height = sign * heights[:, column]
-            ahead = np.flatnonzero((height >= 0) & (height <= EYE_REACH * opening.width))
-            ahead = ahead[np.argsort(height[ahead])]
-            edge = _edge_pixel(depth[ahead, column], heights[ahead, column], opening.width)
-            # the column must start in the opening (no surface, or one far behind the lid):
-            # where a lid covers the corners' line, the first steep stretch is a crease above
-            if edge is None or triangle[ahead[edge], column] < 0 or \
-                    depth[ahead[0], column] > depth[ahead[edge], column] - OPEN_DEPTH * opening.width:
-                continue
-            point = points[ahead[edge], column]
-            if opening.depth(point[None])[0] < -LID_DEPTH * opening.width:
-                continue        # a steep wall deep in a socket seen through the opening
-            corners = triangles[triangle[ahead[edge], column]]
-            row.append(corners[np.argmin(np.linalg.norm(vertices[corners] - point, axis=1))])
-            edge_points.append((stations[column], heights[ahead[edge], column]))
-            seen += 1
-        if EYE_STATIONS[0] <= stations[column] <= EYE_STATIONS[-1]:
-            through.append(seen == 2)
+    # once for all the columns' _edge_pixel (a setting per call was a tenth of the lids' cost)
+    with np.errstate(invalid="ignore"):
+        for column in np.flatnonzero((stations > 0.05) & (stations < 0.95)):
+            seen = 0
+            for sign, row, edge_points in ((1, found[0], edges[0]), (-1, found[1], edges[1])):
+                height = sign * heights[:, column]
+                ahead = np.flatnonzero((height >= 0) & (height <= EYE_REACH * opening.width))
+                ahead = ahead[np.argsort(height[ahead])]
+                edge = _edge_pixel(depth[ahead, column], heights[ahead, column], opening.width)
+                # the column must start in the opening (no surface, or one far behind the lid):
+                # where a lid covers the corners' line, the first steep stretch is a crease above
+                if edge is None or triangle[ahead[edge], column] < 0 or \
+                        depth[ahead[0], column] > depth[ahead[edge], column] - OPEN_DEPTH * opening.width:
+                    continue
+                point = points[ahead[edge], column]
+                if opening.depth(point[None])[0] < -LID_DEPTH * opening.width:
+                    continue        # a steep wall deep in a socket seen through the opening
+                corners = triangles[triangle[ahead[edge], column]]
+                row.append(corners[np.argmin(np.linalg.norm(vertices[corners] - point, axis=1))])
+                edge_points.append((stations[column], heights[ahead[edge], column]))
+                seen += 1
+            if EYE_STATIONS[0] <= stations[column] <= EYE_STATIONS[-1]:
+                through.append(seen == 2)
     through = float(np.mean(through)) if through else 0.0
     upper, lower = (np.unique(np.asarray(row, dtype=np.int64)) for row in found)
     if min(len(upper), len(lower)) < 2:
@@ -320,12 +326,11 @@ class _Lids:
         return (row_heights(self.opening, positions[self.upper], EYE_STATIONS)
                 - row_heights(self.opening, positions[self.lower], EYE_STATIONS))
 
-    def find_upper_lid(self, vertices, triangles):
-        """The surface's vertices over the opening's upper half at rest (upper_lid): within the
-        measured stations (EYE_STATIONS), above the middle between the rows and no more than
-        EYE_REACH x the width above it: the upper lid's front, its thickness behind the edge and
-        the skin up to the crease."""
-        used = np.unique(triangles)
+    def find_upper_lid(self, vertices, used):
+        """The surface's vertices (`used`) over the opening's upper half at rest (upper_lid):
+        within the measured stations (EYE_STATIONS), above the middle between the rows and no
+        more than EYE_REACH x the width above it: the upper lid's front, its thickness behind the
+        edge and the skin up to the crease."""
         s, h = self.opening.station(vertices[used]), self.opening.height(vertices[used])
         middle = (row_heights(self.opening, vertices[self.upper], s)
                   + row_heights(self.opening, vertices[self.lower], s)) / 2
@@ -363,6 +368,7 @@ class Openings:
         frame = FaceAxes(points)
         self.up, self.lips = frame.up, (landmarks["upper_lip"], landmarks["lower_lip"])
         self.rest_lips = self._lips_apart(vertices)
+        self.used = np.unique(triangles)        # the surface's vertices, for the lids' own
         for side in EYES:
             lids = _Lids(vertices, triangles, *(points[name.format(side)] for name in self.EYE_NAMES),
                          frame)
@@ -371,7 +377,7 @@ class Openings:
             elif np.any(lids.rest <= 0):
                 self.reasons[f"eye_{side}"] = "the eye is closed at rest (no open height)"
             else:
-                lids.find_upper_lid(vertices, triangles)
+                lids.find_upper_lid(vertices, self.used)
                 self.lids[f"eye_{side}"] = lids
 
     def made_on(self, vertices, triangles, landmarks):
