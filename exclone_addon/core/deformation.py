@@ -149,8 +149,20 @@ def corner_gradients(rest_corners, deformed_corners):
     Used for the SOURCE of a transfer: the full gradient also says how the normal direction
     moves, which matters when the target triangle is tilted relative to the source one.
     """
-    inv, _ = _inverses(_augmented_edges(rest_corners))
-    return _augmented_edges(deformed_corners) @ inv
+    return deformed_gradients(corner_inverses(rest_corners), deformed_corners)
+
+
+def corner_inverses(rest_corners):
+    """(T, 3, 3) the inverses of rest triangles' (T, 3, 3) edge matrices with the 4th vertex,
+    zeros for degenerate ones: corner_gradients' rest share, kept where many deformations of one
+    rest shape come one after another."""
+    return _inverses(_augmented_edges(rest_corners))[0]
+
+
+def deformed_gradients(inverses, deformed_corners):
+    """corner_gradients from the rest triangles' corner_inverses (T, 3, 3) to each of
+    `deformed_corners` (E, T, 3, 3)."""
+    return _augmented_edges(deformed_corners) @ inverses
 
 
 def corner_gradient_operators(rest_vertices, triangles):

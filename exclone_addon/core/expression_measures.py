@@ -139,10 +139,14 @@ def _eye_view(vertices, triangles, opening):
     camera = Camera.looking(centre, opening.forward, opening.up, VIEW_WIDTH * opening.width,
                             VIEW_PIXELS)
     near = (vertices - centre) @ opening.forward > -VIEW_DEPTH * opening.width
-    drawn = np.flatnonzero(near[triangles].any(axis=1))
-    # the shading is not looked at: one normal for all spares the mesh's vertex normals
-    seen = render(vertices, triangles[drawn], camera,
-                  normals=np.broadcast_to(opening.forward, vertices.shape))
+    # nor those wholly beyond one side of the image (a pixel's margin): they cover no pixel
+    # centre, but their projection and pixel boxes were most of a dense head's drawing
+    half = 0.5 * VIEW_WIDTH * opening.width + camera.pixel_size
+    across = [(vertices - centre) @ axis / half for axis in camera.axes[:2]]     # right, up
+    outside = np.any([np.all(ends > 1, axis=1) | np.all(ends < -1, axis=1)
+                      for ends in (side[triangles] for side in across)], axis=0)
+    drawn = np.flatnonzero(near[triangles].any(axis=1) & ~outside)
+    seen = render(vertices, triangles[drawn], camera, shaded=False)     # what is seen, not how
     pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
     points, triangle = seen.surface_points(pixels.reshape(-1, 2))
     triangle = np.where(triangle >= 0, drawn[triangle], -1)
@@ -152,60 +156,77 @@ def _eye_view(vertices, triangles, opening):
             points.reshape(shape + (3,)), triangle.reshape(shape))
 
 
-def _edge_pixel(depth, heights, width):
-    """Index (into a column's pixels ordered from the corners' line outwards, at `heights`) of
-    the lid's edge: where the first steep stretch (the surface turned more than 45 degrees away
-    from the viewer, or no surface: the opening, a fold into a socket, the top of a lid's
-    thickness) ends, but no more than NEAR_EDGE x the eye's width (`width`) above where the lid's
-    surface begins (after the opening, or a jump in depth from a socket behind): a coarse mesh's
-    lid may be one steep facet up to its crease. None if the column has none."""
-    with np.errstate(invalid="ignore"):
-        step = np.diff(depth)
-        slope = step / np.maximum(np.abs(np.diff(heights)), 1e-300)
+def _edge_pixels(depth, heights, width, length):
+    """Per column of (L, C) pixels ordered from the corners' line outwards (`length` (C,) of
+    them each; the rest padding), at `heights`, the index of the lid's edge: where the first
+    steep stretch (the surface turned more than 45 degrees away from the viewer, or no surface:
+    the opening, a fold into a socket, the top of a lid's thickness) ends, but no more than
+    NEAR_EDGE x the eye's width (`width`) above where the lid's surface begins (after the
+    opening, or a jump in depth from a socket behind): a coarse mesh's lid may be one steep facet
+    up to its crease. -1 where the column has none. All columns at once: one at a time, the
+    calls were most of the lids' cost."""
+    with np.errstate(invalid="ignore"):         # no surface is depth -inf: its steps are NaN
+        step = np.diff(depth, axis=0)
+        slope = step / np.maximum(np.abs(np.diff(heights, axis=0)), 1e-300)
         jump = step > OPEN_DEPTH * width        # from a socket far behind onto the lid
     opening = ~np.isfinite(depth)
-    steep = ((np.isnan(slope) | (slope > STEEP)) & ~opening[1:]) | opening[:-1]
-    first = int(np.argmax(steep))
-    if not steep[first]:
-        return None
-    flat = np.flatnonzero(~steep[first:])
-    end = first + flat[0] - 1 if len(flat) else len(steep) - 1
-    behind = np.flatnonzero(opening[first:end + 1] | jump[first:end + 1])
-    begin = first + behind[-1] + 1 if len(behind) else first
-    near = np.flatnonzero(np.abs(heights[begin:end + 2] - heights[begin]) <= NEAR_EDGE * width)
-    return begin + near[-1]
+    at = np.arange(len(step))[:, None]
+    # padding is never steep: a steep stretch reaching a column's last pixel ends there
+    steep = (((np.isnan(slope) | (slope > STEEP)) & ~opening[1:]) | opening[:-1]) \
+        & (at < length - 1)
+    first = np.argmax(steep, axis=0)
+    flat = ~steep & (at >= first)
+    end = np.where(flat.any(axis=0), np.argmax(flat, axis=0) - 1, length - 2)
+    behind = (opening[:-1] | jump) & (at >= first) & (at <= end)
+    begin = np.where(behind.any(axis=0), len(step) - np.argmax(behind[::-1], axis=0), first)
+    at = np.arange(len(depth))[:, None]
+    near = (np.abs(heights - np.take_along_axis(heights, begin[None], axis=0))
+            <= NEAR_EDGE * width) & (at >= begin) & (at <= end + 1)
+    edge = len(depth) - 1 - np.argmax(near[::-1], axis=0)
+    return np.where(steep.any(axis=0), edge, -1)
 
 
 def _seen_margin(vertices, triangles, opening):
     """(upper ids, lower ids, (upper edge, lower edge), through, how) of the lid margins as seen
     from the front: in every pixel column between the corners, going up (down) from the corners'
-    line within EYE_REACH x the width, the vertex nearest the lid's edge (_edge_pixel) where that
-    edge is on the front (not a wall deep in a socket seen through the opening); each edge (k, 2)
-    the columns' stations and the edge's heights there, by station; through: the share of the
-    columns within EYE_STATIONS where both lids' edges are seen. (None, None, None, through,
+    line within EYE_REACH x the width, the vertex nearest the lid's edge (_edge_pixels) where
+    that edge is on the front (not a wall deep in a socket seen through the opening); each edge
+    (k, 2) the columns' stations and the edge's heights there, by station; through: the share of
+    the columns within EYE_STATIONS where both lids' edges are seen. (None, None, None, through,
     why) without two of each."""
     lines, depth, points, triangle = _eye_view(vertices, triangles, opening)
     stations = opening.station(lines[:VIEW_PIXELS])          # the first row: one per column
     heights = opening.height(lines).reshape(VIEW_PIXELS, VIEW_PIXELS)
+    columns = np.flatnonzero((stations > 0.05) & (stations < 0.95))
+    ahead, edge = [], []
+    for sign in (1, -1):
+        # each column's pixels within reach, ordered outwards from the corners' line
+        height = sign * heights[:, columns]
+        within = (height >= 0) & (height <= EYE_REACH * opening.width)
+        length = within.sum(axis=0)
+        order = np.argsort(np.where(within, height, np.inf), axis=0)[:max(length.max(), 1)]
+        ahead.append(order)
+        edge.append(_edge_pixels(np.take_along_axis(depth[:, columns], order, axis=0),
+                                 np.take_along_axis(heights[:, columns], order, axis=0),
+                                 opening.width, length))
     found, edges, through = ([], []), ([], []), []
-    for column in np.flatnonzero((stations > 0.05) & (stations < 0.95)):
+    for k, column in enumerate(columns):
         seen = 0
-        for sign, row, edge_points in ((1, found[0], edges[0]), (-1, found[1], edges[1])):
-            height = sign * heights[:, column]
-            ahead = np.flatnonzero((height >= 0) & (height <= EYE_REACH * opening.width))
-            ahead = ahead[np.argsort(height[ahead])]
-            edge = _edge_pixel(depth[ahead, column], heights[ahead, column], opening.width)
+        for side, row, edge_points in ((0, found[0], edges[0]), (1, found[1], edges[1])):
+            if edge[side][k] < 0:
+                continue
+            pixel, start = ahead[side][edge[side][k], k], ahead[side][0, k]
             # the column must start in the opening (no surface, or one far behind the lid):
             # where a lid covers the corners' line, the first steep stretch is a crease above
-            if edge is None or triangle[ahead[edge], column] < 0 or \
-                    depth[ahead[0], column] > depth[ahead[edge], column] - OPEN_DEPTH * opening.width:
+            if triangle[pixel, column] < 0 or \
+                    depth[start, column] > depth[pixel, column] - OPEN_DEPTH * opening.width:
                 continue
-            point = points[ahead[edge], column]
+            point = points[pixel, column]
             if opening.depth(point[None])[0] < -LID_DEPTH * opening.width:
                 continue        # a steep wall deep in a socket seen through the opening
-            corners = triangles[triangle[ahead[edge], column]]
+            corners = triangles[triangle[pixel, column]]
             row.append(corners[np.argmin(np.linalg.norm(vertices[corners] - point, axis=1))])
-            edge_points.append((stations[column], heights[ahead[edge], column]))
+            edge_points.append((stations[column], heights[pixel, column]))
             seen += 1
         if EYE_STATIONS[0] <= stations[column] <= EYE_STATIONS[-1]:
             through.append(seen == 2)
@@ -320,12 +341,11 @@ class _Lids:
         return (row_heights(self.opening, positions[self.upper], EYE_STATIONS)
                 - row_heights(self.opening, positions[self.lower], EYE_STATIONS))
 
-    def find_upper_lid(self, vertices, triangles):
-        """The surface's vertices over the opening's upper half at rest (upper_lid): within the
-        measured stations (EYE_STATIONS), above the middle between the rows and no more than
-        EYE_REACH x the width above it: the upper lid's front, its thickness behind the edge and
-        the skin up to the crease."""
-        used = np.unique(triangles)
+    def find_upper_lid(self, vertices, used):
+        """The surface's vertices (`used`) over the opening's upper half at rest (upper_lid):
+        within the measured stations (EYE_STATIONS), above the middle between the rows and no
+        more than EYE_REACH x the width above it: the upper lid's front, its thickness behind the
+        edge and the skin up to the crease."""
         s, h = self.opening.station(vertices[used]), self.opening.height(vertices[used])
         middle = (row_heights(self.opening, vertices[self.upper], s)
                   + row_heights(self.opening, vertices[self.lower], s)) / 2
@@ -363,6 +383,7 @@ class Openings:
         frame = FaceAxes(points)
         self.up, self.lips = frame.up, (landmarks["upper_lip"], landmarks["lower_lip"])
         self.rest_lips = self._lips_apart(vertices)
+        self.used = np.unique(triangles)        # the surface's vertices, for the lids' own
         for side in EYES:
             lids = _Lids(vertices, triangles, *(points[name.format(side)] for name in self.EYE_NAMES),
                          frame)
@@ -371,7 +392,7 @@ class Openings:
             elif np.any(lids.rest <= 0):
                 self.reasons[f"eye_{side}"] = "the eye is closed at rest (no open height)"
             else:
-                lids.find_upper_lid(vertices, triangles)
+                lids.find_upper_lid(vertices, self.used)
                 self.lids[f"eye_{side}"] = lids
 
     def made_on(self, vertices, triangles, landmarks):

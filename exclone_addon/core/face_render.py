@@ -65,11 +65,12 @@ class Camera:
 
 @dataclass(frozen=True)
 class Render:
-    image: np.ndarray     # (size, size, 3) uint8 BGR, black background
+    image: np.ndarray     # (size, size, 3) uint8 BGR, black background (None: not shaded)
     triangle: np.ndarray  # (size, size) int32: the triangle seen at each pixel, -1 for background
     camera: Camera
     vertices: np.ndarray  # the mesh rendered (world space)
     triangles: np.ndarray
+    projected: np.ndarray  # its vertices through the camera (Camera.project)
 
     def surface_points(self, pixels):
         """(k, 2) image points -> ((k, 3) world points on the surface, (k,) triangle ids).
@@ -88,11 +89,11 @@ class Render:
         inside = finite & (cols >= 0) & (cols < self.camera.size) & (rows >= 0) & (rows < self.camera.size)
         ids[inside] = self.triangle[rows[inside], cols[inside]]
         hit = ids >= 0
-        corners = self.vertices[self.triangles[ids[hit]]]                 # (h, 3, 3)
-        flat = self.camera.project(corners.reshape(-1, 3))[:, :2].reshape(-1, 3, 2)
+        corners = self.triangles[ids[hit]]                                 # (h, 3)
+        flat = self.projected[corners][:, :, :2]
         weights = np.clip(_barycentric(flat, pixels[hit]), 0.0, None)
         weights /= weights.sum(axis=1, keepdims=True)
-        points[hit] = np.einsum("hc,hcd->hd", weights, corners)
+        points[hit] = np.einsum("hc,hcd->hd", weights, self.vertices[corners])
         return points, ids
 
 
@@ -108,14 +109,15 @@ def _barycentric(flat, points):
     return np.column_stack([1.0 - b1 - b2, b1, b2])
 
 
-def render(vertices, triangles, camera, normals=None):
+def render(vertices, triangles, camera, normals=None, shaded=True):
     """Render a mesh (world-space (n, 3) vertices, (m, 3) triangles) through `camera`.
 
     normals: (n, 3) vertex normals for the shading (default: area-weighted, core.mesh); pass the
-    welded mesh's so split seams do not show as creases."""
+    welded mesh's so split seams do not show as creases. shaded=False: no image (None), for a
+    caller that reads only which triangle each pixel sees."""
     vertices = np.asarray(vertices, float)
     triangles = np.asarray(triangles, dtype=np.int64)
-    if normals is None:
+    if normals is None and shaded:
         normals = vertex_normals(vertices, triangles)
     projected = camera.project(vertices)
     size = camera.size
@@ -127,15 +129,21 @@ def render(vertices, triangles, camera, normals=None):
     for batch in _batches(count):
         _rasterise(projected[triangles[batch]], batch, low[batch], extent[batch], size,
                    depth, winner, weights)
+    return Render(image=_shading(weights, winner, normals, triangles, camera) if shaded else None,
+                  triangle=winner.astype(np.int32).reshape(size, size), camera=camera,
+                  vertices=vertices, triangles=triangles, projected=projected)
+
+
+def _shading(weights, winner, normals, triangles, camera):
+    """(size, size, 3) uint8 BGR: SKIN_BGR under a headlight where a triangle is seen (its
+    vertex normals interpolated by the pixel's barycentric weights), black elsewhere."""
     seen = winner >= 0
     normal = np.einsum("pc,pcd->pd", weights[seen], normals[triangles[winner[seen]]])
     length = np.linalg.norm(normal, axis=1)
     light = np.abs(normal @ camera.axes[2]) / np.maximum(length, 1e-12)
-    image = np.zeros((size * size, 3))
+    image = np.zeros((camera.size * camera.size, 3))
     image[seen] = SKIN_BGR * (AMBIENT + (1.0 - AMBIENT) * light)[:, None]
-    return Render(image=np.clip(image, 0, 255).astype(np.uint8).reshape(size, size, 3),
-                  triangle=winner.astype(np.int32).reshape(size, size), camera=camera,
-                  vertices=vertices, triangles=triangles)
+    return np.clip(image, 0, 255).astype(np.uint8).reshape(camera.size, camera.size, 3)
 
 
 def _pixel_boxes(corners, size):

@@ -113,7 +113,8 @@ class RimGoals:
                 # the station goals' lid carries its thickness where it maps off the source's:
                 # held by its edge alone, it keeps the transfer's motion plus the edge's correction
                 eye.thickness, eye.carried = _unmatched_thickness(
-                    lids, source_lids, region, source_vertices, source_triangles, vertex_map) \
+                    lids, source_lids, region.vertices, openings.used, source_vertices,
+                    source_openings.used, source_triangles, vertex_map) \
                     if isinstance(eye, _StationRims) \
                     else (np.zeros(0, dtype=np.int64), np.zeros((0, len(eye.ids))))
                 self.eyes.append(eye)
@@ -141,15 +142,16 @@ class RimGoals:
         return result + self.solve(goals - result[:, self.ids])
 
 
-def _unmatched_thickness(lids, source_lids, region, source_vertices, source_triangles,
-                         vertex_map):
+def _unmatched_thickness(lids, source_lids, vertices, used, source_vertices, source_used,
+                         source_triangles, vertex_map):
     """_thickness of the target's lids, less the vertices whose image lies on the source's own
     lid thickness (the vertex map's nearest corner is one of the source's _thickness): those
     move as the source's thickness does (a target of the source's own base mesh, vertex by
     vertex: exactly). Carried with the edge are the others, whose image the registration put on
-    the skin over the source's lid or on none."""
-    ids, carried = _thickness(lids, region.vertices, np.unique(region.triangles))
-    source_thickness, _ = _thickness(source_lids, source_vertices, np.unique(source_triangles))
+    the skin over the source's lid or on none. used, source_used: the surfaces' vertices (the
+    Openings')."""
+    ids, carried = _thickness(lids, vertices, used)
+    source_thickness, _ = _thickness(source_lids, source_vertices, source_used)
     corners = source_triangles[vertex_map.triangle[ids]]
     nearest = corners[np.arange(len(ids)), np.argmax(vertex_map.bary[ids], axis=1)]
     unmatched = ~(vertex_map.valid[ids] & np.isin(nearest, source_thickness))
