@@ -42,6 +42,12 @@ def affine():
     return a, rng.normal(size=3)
 
 
+def full_gradients(rest, deformed, triangles):
+    """deformation.corner_gradients of a mesh: rest (n, 3) to deformed (n, 3) or (E, n, 3) ->
+    (T|E,T, 3, 3)."""
+    return deformation.corner_gradients(rest[triangles], np.asarray(deformed)[..., triangles, :])
+
+
 def blocks(stacked):
     """(3T, 3) in the operators' layout -> (T, 3, 3) gradients Q_j (undo the per-block transpose)."""
     return np.swapaxes(np.asarray(stacked).reshape(-1, 3, 3), 1, 2)
@@ -89,7 +95,7 @@ def test_reduced_operator_gives_the_affine_map_projected_on_each_plane(head, aff
 def test_stacked_layout_round_trips_gradients(head, affine):
     v, tris = head
     a, t = affine
-    q = deformation.full_gradients(v, v @ a.T + t, tris[:50])
+    q = full_gradients(v, v @ a.T + t, tris[:50])
     stacked = deformation.stack_gradients(q)
     assert stacked.shape == (150, 3)
     # (G @ X)[3j + c, r] = Q_j[r, c]
@@ -105,7 +111,7 @@ def test_full_gradients_of_a_similarity_equal_it(head):
     v, tris = head
     rotation = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
     s = 1.7
-    q = deformation.full_gradients(v, s * v @ rotation.T + [1.0, -2.0, 3.0], tris)
+    q = full_gradients(v, s * v @ rotation.T + [1.0, -2.0, 3.0], tris)
     np.testing.assert_allclose(q, np.broadcast_to(s * rotation, q.shape), atol=1e-8)
 
 
@@ -115,13 +121,13 @@ def test_full_gradients_of_an_affine_map_match_it_in_plane(head, affine):
     v, tris = head
     a, t = affine
     deformed = v @ a.T + t
-    q = deformation.full_gradients(v, deformed, tris)
+    q = full_gradients(v, deformed, tris)
     p = plane_projections(v, tris)
     np.testing.assert_allclose(q @ p, a @ p, atol=1e-8)
     mapped_normal = np.einsum("tij,tj->ti", q, triangle_normals(v, tris))
     mapped_normal /= np.linalg.norm(mapped_normal, axis=1, keepdims=True)
     np.testing.assert_allclose(mapped_normal, triangle_normals(deformed, tris), atol=1e-8)
-    batch = deformation.full_gradients(v, np.stack([v, deformed]), tris)
+    batch = full_gradients(v, np.stack([v, deformed]), tris)
     assert batch.shape == (2, len(tris), 3, 3)
     np.testing.assert_allclose(batch[0], np.broadcast_to(np.eye(3), q.shape), atol=1e-9)
 
@@ -137,7 +143,7 @@ def test_degenerate_triangles_get_zero_rows_and_no_nan(head, affine, formulation
     assert rows.nnz == 0 or np.abs(rows.data).max() == 0
     x = deformation.unknowns_of(v, tris, formulation) @ a.T + t
     assert np.isfinite(g @ x).all()
-    q = deformation.full_gradients(v, v @ a.T + t, tris)
+    q = full_gradients(v, v @ a.T + t, tris)
     assert np.isfinite(q).all() and np.abs(q[-2:]).max() == 0
 
 
@@ -193,7 +199,7 @@ def transfers(head):
 @pytest.mark.parametrize("formulation", FORMULATIONS)
 def test_transfer_of_a_zero_expression_is_zero(head, transfers, formulation):
     v, tris = head
-    gradients = deformation.full_gradients(v, v[None], tris)
+    gradients = full_gradients(v, v[None], tris)
     n = len(v) + 2
     anchors = np.arange(0, len(v), 97)
     d = transfers[formulation](gradients, np.zeros((1, len(anchors), 3)), anchors)
@@ -208,7 +214,7 @@ def test_transfer_of_a_zero_expression_is_zero(head, transfers, formulation):
 def test_transfer_of_a_translation_is_the_anchored_translation(head, transfers, formulation):
     v, tris = head
     shift = np.array([0.3, -0.7, 0.2])
-    gradients = deformation.full_gradients(v, (v + shift)[None], tris)
+    gradients = full_gradients(v, (v + shift)[None], tris)
     anchors = np.arange(0, len(v), 50)
     d = transfers[formulation](gradients, np.broadcast_to(shift, (1, len(anchors), 3)), anchors)
     np.testing.assert_allclose(d[0, : len(v)], np.broadcast_to(shift, (len(v), 3)), atol=1e-9)
@@ -221,7 +227,7 @@ def test_transfer_of_an_affine_map_onto_the_same_mesh_is_that_map(head, transfer
     a, t = affine
     rotation = Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix()
     shapes = np.stack([v @ a.T + t - v, 1.3 * v @ rotation.T - v])       # two expressions
-    gradients = deformation.full_gradients(v, v + shapes, tris)
+    gradients = full_gradients(v, v + shapes, tris)
     anchors = np.arange(0, len(v), 61)
     d = transfers[formulation](gradients, shapes[:, anchors], anchors)
     # Transfer's whisper of regularisation (1e-10 of the diagonal) costs ~2e-7 of the size here
@@ -234,7 +240,7 @@ def test_transfer_ignores_gradients_of_uncovered_triangles(head):
     """Target triangles with weight 0 take the identity, whatever gradient they are handed."""
     v, tris = head
     transfer = Transfer(v, tris, np.zeros(len(tris)), deformation.REDUCED)
-    gradients = deformation.full_gradients(v, (1.5 * v)[None], tris)
+    gradients = full_gradients(v, (1.5 * v)[None], tris)
     d = transfer(gradients, np.full((1, 3, 3), [0.0, 0.0, 0.2]), np.array([0, 1, 2]))
     np.testing.assert_allclose(d[0], np.broadcast_to([0.0, 0.0, 0.2], v.shape), atol=1e-9)
 
@@ -253,7 +259,7 @@ def test_fixed_vertices_stay_exactly_still_in_every_expression(head, affine, for
     v, tris = head
     a, t = affine
     shapes = np.stack([v @ a.T + t - v, np.broadcast_to([0.3, -0.1, 0.2], v.shape), 0.4 * v])
-    gradients = deformation.full_gradients(v, v + shapes, tris)
+    gradients = full_gradients(v, v + shapes, tris)
     fixed = np.arange(5, len(v), 37)
     system = Transfer(v, tris, np.ones(len(tris)), formulation, fixed=fixed)
     anchors = np.arange(0, len(v), 61)
@@ -270,7 +276,7 @@ def test_an_affine_map_about_a_fixed_vertex_is_that_map(head, affine, formulatio
     a, _ = affine
     p = int(tris[0, 0])
     shape = (v - v[p]) @ a.T + v[p] - v
-    gradients = deformation.full_gradients(v, (v + shape)[None], tris)
+    gradients = full_gradients(v, (v + shape)[None], tris)
     system = Transfer(v, tris, np.ones(len(tris)), formulation, fixed=[p])
     d = system(gradients)[0]
     part = system.parts == system.parts[p]
@@ -283,7 +289,7 @@ def test_a_part_holding_fixed_vertices_is_not_re_translated(head):
     (which say 'move by the shift') must not move the part away from its fixed vertex."""
     v, tris = head
     shift = np.array([0.3, -0.7, 0.2])
-    gradients = deformation.full_gradients(v, (v + shift)[None], tris)
+    gradients = full_gradients(v, (v + shift)[None], tris)
     anchors = np.arange(0, len(v), 50)
     system = Transfer(v, tris, np.ones(len(tris)), deformation.REDUCED, fixed=[int(tris[0, 0])])
     d = system(gradients, np.broadcast_to(shift, (1, len(anchors), 3)), anchors)
@@ -302,7 +308,7 @@ def test_a_bump_with_its_border_held_is_transferred_smoothly_with_the_border_sti
     bump[:, 2] = 0.2 * np.sin(np.pi * x) * np.sin(np.pi * y)
     bump[:, 0] = 0.05 * np.sin(np.pi * x) ** 2 * np.sin(np.pi * y)
     border = np.flatnonzero((x == 0) | (x == 1) | (y == 0) | (y == 1))
-    gradients = deformation.full_gradients(vertices, (vertices + bump)[None], triangles)
+    gradients = full_gradients(vertices, (vertices + bump)[None], triangles)
     system = Transfer(vertices, triangles, np.ones(len(triangles)), formulation, fixed=border)
     d = system(gradients)[0]
     assert np.all(d[border] == 0.0)

@@ -180,11 +180,6 @@ def corner_gradient_operators(rest_vertices, triangles):
     return edges, normal
 
 
-def full_gradients(rest, deformed, triangles):
-    """corner_gradients of a mesh: rest (n, 3) to deformed (n, 3) or (E, n, 3) -> (T|E,T, 3, 3)."""
-    return corner_gradients(rest[triangles], np.asarray(deformed)[..., triangles, :])
-
-
 def stacked_identity(n_triangles):
     """Right-hand side (3T, 3) meaning 'identity gradient' on every triangle, in G's layout."""
     return np.tile(np.eye(3), (n_triangles, 1))
