@@ -564,7 +564,7 @@ def _seen_from_above(face, local, triangles):
     camera = face_render.Camera.looking((used.min(axis=0) + used.max(axis=0)) / 2,
                                         np.array([0.0, 1.0, 0.0]), np.array([0.0, 0.0, 1.0]),
                                         width, size=size)
-    shown = face_render.render(local, triangles, camera).triangle
+    shown = face_render.render(local, triangles, camera, shaded=False).triangle
     seen[triangles[np.unique(shown[shown >= 0])].ravel()] = True
     return seen
 
