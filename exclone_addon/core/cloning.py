@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from . import deformation, followers
 from .correspondence import (Correspondence, VertexMap, map_vertices, mapped_triangles,
-                             triangle_correspondence)
+                             source_matches, triangle_correspondence)
 from .errors import ExCloneError
 from .landmarks import MIN_PAIRS, automatic_landmarks, checked_pairs
 from .mesh import checked_triangles, triangle_areas, vertex_parts, welded
@@ -234,6 +234,8 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks, face_guide
         tgt_job = pool.submit(_found, target, face_guide)
         if src_job:
             src_names, src_ids = src_job.result()
+        else:     # this thread would only wait: it prepares what the fit asks of the target
+            _prepare_for_fit(target)
         tgt_names, tgt_ids = tgt_job.result()
     common = [n for n in src_names if n in tgt_names]
     if len(common) < MIN_PAIRS:
@@ -241,6 +243,14 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks, face_guide
                            "place the landmarks by hand")
     return (np.array([src_ids[src_names.index(n)] for n in common], dtype=np.int64),
             np.array([tgt_ids[tgt_names.index(n)] for n in common], dtype=np.int64), common)
+
+
+def _prepare_for_fit(surface):
+    """Has the Surface find the answers the registration and the correspondence ask of a target
+    (it keeps them): its outward normals, open borders and areas."""
+    for answer in ("vertex_normals", "triangle_normals", "on_border", "border_search",
+                   "vertex_areas", "border_lengths"):
+        getattr(surface, answer)
 
 
 def found_landmarks(mesh, what="mesh", face_guide=None):
@@ -344,12 +354,17 @@ def _correspond(registered, target, settings):
     vertex map where plausible, triangle pairs elsewhere. Returns (vertex_map, mapped, pairs,
     weights)."""
     max_distance = settings.max_distance * target.diagonal
-    vertex_map = map_vertices(registered, target, max_distance)
-    if settings.correspondence == "vertex":
-        mapped = mapped_triangles(vertex_map, registered, target)
-    else:
-        mapped = np.zeros(len(target.triangles), dtype=bool)
-    pairs = triangle_correspondence(registered, target, max_distance, wanted=~mapped)
+    # the source's side of the pairs is found beside the vertex map, which it does not need
+    # (numpy and the KD-tree release the GIL)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        from_source = pool.submit(source_matches, registered, target, max_distance)
+        vertex_map = map_vertices(registered, target, max_distance)
+        if settings.correspondence == "vertex":
+            mapped = mapped_triangles(vertex_map, registered, target)
+        else:
+            mapped = np.zeros(len(target.triangles), dtype=bool)
+        pairs = triangle_correspondence(registered, target, max_distance, wanted=~mapped,
+                                        from_source=from_source.result())
     pairs = pairs.matrix(len(target.triangles), len(registered.triangles))
     weights = np.where(mapped, 1.0, np.asarray(pairs.sum(axis=1)).ravel())
     if not np.any(weights > 0):

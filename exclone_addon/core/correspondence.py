@@ -89,16 +89,22 @@ def _target_matches(source, target, ids, max_distance):
             np.r_[weights, np.full(len(s_from), 1.0 / len(SAMPLES))])
 
 
-def triangle_correspondence(source, target, max_distance, wanted=None):
+def source_matches(source, target, max_distance):
+    """(source triangle, target triangle) of each source triangle whose centroid matches on the
+    target (_matches): the pairs' second direction, which needs no vertex map."""
+    return _matches(source, np.arange(len(source.triangles)), target, SAMPLES[:1], max_distance)
+
+
+def triangle_correspondence(source, target, max_distance, wanted=None, from_source=None):
     """Weighted triangle pairs between a registered source Surface and the target Surface (same
     space). wanted: optional (T_target,) mask of the target triangles that need pairs (default:
-    all)."""
+    all). from_source: source_matches of the two if already found."""
     wanted = np.ones(len(target.triangles), dtype=bool) if wanted is None else wanted
     ids = np.flatnonzero(wanted)
     t_from, s_to, t_weights = _target_matches(source, target, ids, max_distance)
     t_from = ids[t_from]
-    s_from, t_to = _matches(source, np.arange(len(source.triangles)), target, SAMPLES[:1],
-                            max_distance)
+    s_from, t_to = source_matches(source, target, max_distance) if from_source is None \
+        else from_source
     keep = wanted[t_to]
     s_from, t_to = s_from[keep], t_to[keep]
     # each target sample carries 1/k of its triangle; a source centroid weighs like one sample
