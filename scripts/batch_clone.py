@@ -76,8 +76,9 @@ MIB = 1024 * 1024
 # process, 57 expressions, --no-preview, the streamed transfer): 520 MiB onto the 4,244-vertex
 # demo head, 875 MiB onto the 66,649-vertex MakeHuman dense head, i.e. ~500 MiB + 5.8 KiB per
 # target vertex. Rounded up, the slope doubled (other sources, more expressions): a batch errs
-# towards fewer jobs, never towards swapping.
-JOB_BASE_BYTES = 512 * MIB
+# towards fewer jobs, never towards swapping. The forked copy (clone_worker, a source of plain
+# files) adds ~100 MiB: 643 MiB summed RSS (491 MiB PSS) onto the demo head.
+JOB_BASE_BYTES = 640 * MIB
 JOB_BYTES_PER_VERTEX = 12 * 1024
 # A target that is not an OBJ is not opened to count its vertices: its file size over this
 # many bytes per vertex (a glTF/FBX/.blend holds at least a position, a normal and UVs per
@@ -490,8 +491,8 @@ def run(args, clone_process=None):
     """One target, everything the CLI does; returns the report (a dict), or None when --resume
     finds it done. ExCloneError on bad input or an output that cannot be written, and then no
     output is left behind. clone_process: a CloneProcess reading the source and cloning (else
-    both are done here)."""
-    started = time.perf_counter()
+    both are done here); the report's total time counts from its start, else from now."""
+    started = time.perf_counter() if clone_process is None else clone_process.started
     paths = output_paths(args)
     if args.resume and paths.report.is_file():
         print(f"skipped: {paths.report} exists, the target is done (--resume)")

@@ -3,26 +3,31 @@ to --shapes, the face found on an OBJ target, the clone of the expressions onto 
 and their measures.
 
 batch_clone.py runs `cloned` in its own process when Blender reads the source. When the source
-is plain files (a folder of OBJs, the bundled library) on Linux, it loads the engine, forks
-(CloneProcess: the copy shares what is loaded) and loads Blender (`import bpy` and its own
-modules, ~0.7 CPU s) while the copy, on the other core, reads the source and, for an OBJ target
-without --landmarks, makes the object Blender will make of the target (target_part), finds the
-face on it and clones. batch_clone reads the target in Blender as before and uses that face and
-clone only if its object is that one to the bit; otherwise it finds the face itself and sends
-it to be cloned.
+is plain files (a folder of OBJs, the bundled library) on Linux, it loads the engine and forks
+(CloneProcess: the copy shares what is loaded). For an OBJ target without --landmarks, the copy
+makes the object Blender will make of the target (target_part) and finds the face on it while
+batch_clone reads the source and sends it over; the copy then clones, while batch_clone loads
+Blender (`import bpy` and its own modules, ~0.7 CPU s) and reads the target. batch_clone uses
+that face and clone only if Blender's object is the copy's to the bit; otherwise it finds the
+face itself and sends it to be cloned (as it does with --landmarks).
 
-The processes exchange pickled messages through a multiprocessing Pipe. batch_clone's is
-(face, landmarks), face None for the face found in the copy, verified. The copy's are
-("source", library, seconds); with guess, ("face", Part or None, face or None); ("progress",
-fraction, message)... while it clones; ("cloned", Cloned) when asked. ("error", exception)
-stands for whichever failed.
+The processes exchange pickled messages through a multiprocessing Pipe: batch_clone sends the
+source (None if it could not read it), then (face, landmarks), face None for the copy's own,
+verified. The copy sends, with guess, ("face", Part or None, face or None); ("progress",
+fraction, message)... while it clones; ("cloned", Cloned) when asked; ("error", exception) if
+it failed. Each process reads what it is sent on a thread of the copy (Outbox, Inbox), so that
+neither waits for the other to read a large message: batch_clone's own process, which loads
+Blender meanwhile, runs no thread (a library Blender loads can wait for the GIL while holding
+the dynamic loader's lock: a deadlock).
 """
 import ctypes
 import multiprocessing
 import os
 import pickle
+import queue
 import signal
 import sys
+import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -120,22 +125,32 @@ def can_fork():
 
 
 class CloneProcess:
-    """A fork of this process reading the source spec (plain files: blender/plain_files.py)
-    cut to `shapes` at once and, with guess, finding the face on the target spec and cloning;
-    then `source`, `face` and `clone` as batch_clone needs them. Started before Blender is
-    loaded. A context manager: on leaving, the process is stopped if it still runs."""
+    """A fork of this process that, with guess, finds the face on the object Blender will make
+    of the target spec and clones at once; meanwhile this process reads the source spec
+    (plain files: blender/plain_files.py) cut to `shapes` and sends it. Then `source`, `face`
+    and `clone` as batch_clone needs them. Started before Blender is loaded. A context manager:
+    on leaving, the process is stopped if it still runs."""
 
     def __init__(self, source_spec, shapes, target_spec, guess):
+        self.started = time.perf_counter()
         context = multiprocessing.get_context("fork")
         self.connection, theirs = context.Pipe()
         self.process = context.Process(target=serve, daemon=True,
-                                       args=(theirs, os.getpid(), source_spec, shapes,
-                                             target_spec, guess))
+                                       args=(theirs, os.getpid(), target_spec, guess))
         self.process.start()
         theirs.close()
         self.guess = guess
         self.verified = False       # the face found there is the one batch_clone uses
-        self._source = None         # source's outcome: (library, seconds) or the exception
+        clock = time.perf_counter()
+        try:
+            source = selected_shapes(plain_files.load_source(source_spec), shapes)
+            self._source = (source, time.perf_counter() - clock)
+        except Exception as exc:    # raised when batch_clone asks for the source
+            self._source, source = exc, None
+        try:
+            self.connection.send(source)    # read at once there (Inbox)
+        except OSError:                     # it has ended: _receive says how
+            pass
 
     def _receive(self):
         """The next message from the process: (kind, values); the error it sent raised here."""
@@ -151,20 +166,15 @@ class CloneProcess:
 
     def source(self):
         """(the source as an ExpressionLibrary, seconds it took to read); the error reading it
-        raised here (each time asked)."""
-        if self._source is None:
-            try:
-                self._source = tuple(self._receive()[1])
-            except Exception as exc:
-                self._source = exc
+        raised here."""
         if isinstance(self._source, Exception):
             raise self._source
         return self._source
 
     def face(self, parts, find):
         """The CharacterFace on the target's parts (Blender's): the one found in the process if
-        it found it on these parts, else find(parts)'s. A bad source's error first, as if the
-        source were read first."""
+        it found it on these parts to the bit, else find(parts)'s. A bad source's error first,
+        as if the source were read first."""
         self.source()
         if self.guess:
             part, face = self._receive()[1]
@@ -193,7 +203,43 @@ class CloneProcess:
         self.connection.close()
 
 
-def serve(connection, parent, source_spec, shapes, target_spec, guess):
+class Inbox(threading.Thread):
+    """The next message on a connection, received on a thread (`message` once joined)."""
+
+    def __init__(self, connection):
+        super().__init__(daemon=True)
+        self.connection, self.message = connection, None
+        self.start()
+
+    def run(self):
+        self.message = self.connection.recv()
+
+
+class Outbox(threading.Thread):
+    """Messages sent in order on a thread, so that the sender never waits for the reader."""
+
+    def __init__(self, connection):
+        super().__init__(daemon=True)
+        self.connection, self.queue = connection, queue.Queue()
+        self.start()
+
+    def send(self, *message):
+        self.queue.put(message)
+
+    def run(self):
+        try:
+            while (message := self.queue.get()) is not None:
+                self.connection.send(message)
+        except OSError:     # batch_clone has stopped reading: it is ending, so does this process
+            pass
+
+    def close(self):
+        """Wait until everything is sent."""
+        self.queue.put(None)
+        self.join()
+
+
+def serve(connection, parent, target_spec, guess):
     """The forked process (the module's docstring); parent: batch_clone's process id."""
     # killed when batch_clone's process ends, however it ends (stopped while loading Blender,
     # before it can stop this one)
@@ -201,36 +247,38 @@ def serve(connection, parent, source_spec, shapes, target_spec, guess):
     if os.getppid() != parent:
         return
     os.dup2(1, 2)   # as batch_clone's own run does (exclone_cli): stderr is for its error line
-
-    def send(*message):
-        connection.send(message)
-
-    def progress(fraction, message):
-        send("progress", fraction, message)
-
+    inbox, outbox = Inbox(connection), Outbox(connection)
     try:
-        clock = time.perf_counter()
-        source = selected_shapes(plain_files.load_source(source_spec), shapes)
-        send("source", source, time.perf_counter() - clock)
-        guessed = None
+        guessed = part = face = None
         if guess:
-            part, face = target_part(target_spec), None
+            part = target_part(target_spec)
             if part is not None:
                 try:
                     face = character.found_or_whole([part])
                 except Exception:   # batch_clone finds it on its own object, or says why not
                     part = None
-            send("face", part, face)
-            if face is not None:
-                guessed = cloned(source, face, None, progress)
+            outbox.send("face", part, face)
+        inbox.join()
+        source = inbox.message
+        if source is None:          # batch_clone could not read it, and says why
+            return
+        if face is not None:
+            guessed = cloned(source, face, None,
+                             lambda fraction, message: outbox.send("progress", fraction, message))
         face, landmarks = connection.recv()
-        send("cloned", guessed if face is None else cloned(source, face, landmarks, progress))
+        if face is not None:
+            guessed = cloned(source, face, landmarks,
+                             lambda fraction, message: outbox.send("progress", fraction, message))
+        outbox.send("cloned", guessed)
     except (EOFError, BrokenPipeError, KeyboardInterrupt):  # batch_clone stopped: so does this
         return
     except Exception as exc:  # batch_clone reports it
         if os.environ.get("EXCLONE_DEBUG"):
             traceback.print_exc()
         try:
-            send("error", exc)
+            pickle.dumps(exc)
         except (pickle.PicklingError, TypeError, AttributeError):
-            send("error", RuntimeError(user_message(exc)))
+            exc = RuntimeError(user_message(exc))
+        outbox.send("error", exc)
+    finally:
+        outbox.close()
