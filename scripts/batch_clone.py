@@ -24,6 +24,10 @@ whose report exists is done and skipped). The outputs are written under temporar
 into place together at the end, so a run that fails (bad input, a full disk) leaves no
 half-written file; the report is moved last, so a report on disk means a finished target.
 
+On Linux, when the source is plain files (the bundled library, a folder of OBJs), a forked copy
+of the process reads it and, for an OBJ target without --landmarks, finds the face and clones
+while the process loads Blender (scripts/clone_worker.py): the same result, sooner.
+
 Several targets (--target given more than once, or a folder of meshes) make a batch: each target
 runs in its own process, --jobs N at a time (by default as many as the CPUs and the free memory
 allow: plan_jobs), writing <out-dir>/<target>_exclone.blend (or --format), .json and .png, plus
@@ -33,7 +37,9 @@ outputs. A failed target does not stop the others; the exit code is non-zero if 
 --summary-only writes the summary from the outputs on disk without running anything (the
 Flamenco job type's last task: flamenco/exclone_batch.js).
 """
+import contextlib
 import ctypes
+import functools
 import json
 import os
 import platform
@@ -46,8 +52,6 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
-import bpy
-
 try:
     import scipy  # noqa: F401  (Blender ships numpy but not scipy)
 except ImportError:
@@ -56,29 +60,25 @@ except ImportError:
 
 SCRIPT = Path(__file__).resolve()
 sys.path[:0] = [str(SCRIPT.parent.parent), str(SCRIPT.parent)]  # exclone_addon, exclone_cli
-import cv2  # noqa: E402
-import numpy as np  # noqa: E402
+# The engine (and what parses the arguments) before Blender, which is loaded below
+from clone_worker import CloneProcess, can_fork, cloned, selected_shapes  # noqa: E402
 from exclone_cli import (Outputs, Parser, check_folder_writable, check_output_writable,  # noqa: E402
                          number, run_main)
-from exclone_addon.blender import (character, character_keys, files, mesh_io, preview,  # noqa: E402
-                                     workflow)
-from exclone_addon.core import character as core_character, data, reports  # noqa: E402
-from exclone_addon.core.cloning import CloneSettings, clone_expressions  # noqa: E402
+from exclone_addon.blender.plain_files import (RESULT_SUFFIXES, TARGET_SUFFIXES,  # noqa: E402
+                                             source_is_plain_files, split_spec)
 from exclone_addon.core.errors import ExCloneError  # noqa: E402
-from exclone_addon.core.expression_measures import measure_clone, summary  # noqa: E402
-from exclone_addon.core.landmarks import checked_pairs  # noqa: E402
-from exclone_addon.core.mesh import PolyMesh, write_obj  # noqa: E402
 
 PROG = "batch_clone"
 BLAS_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
-OUT_SUFFIXES = files.RESULT_SUFFIXES          # .blend, .glb, .fbx
+OUT_SUFFIXES = RESULT_SUFFIXES                # .blend, .glb, .fbx
 MIB = 1024 * 1024
 # One target's process, for sizing --jobs by free memory. Measured (peak RSS of the bpy-module
 # process, 57 expressions, --no-preview, the streamed transfer): 520 MiB onto the 4,244-vertex
 # demo head, 875 MiB onto the 66,649-vertex MakeHuman dense head, i.e. ~500 MiB + 5.8 KiB per
 # target vertex. Rounded up, the slope doubled (other sources, more expressions): a batch errs
-# towards fewer jobs, never towards swapping.
-JOB_BASE_BYTES = 512 * MIB
+# towards fewer jobs, never towards swapping. The forked copy (clone_worker, a source of plain
+# files) adds ~100 MiB: 643 MiB summed RSS (491 MiB PSS) onto the demo head.
+JOB_BASE_BYTES = 640 * MIB
 JOB_BYTES_PER_VERTEX = 12 * 1024
 # A target that is not an OBJ is not opened to count its vertices: its file size over this
 # many bytes per vertex (a glTF/FBX/.blend holds at least a position, a normal and UVs per
@@ -145,7 +145,7 @@ def parse_args(argv):
     if args.overwrite and args.resume:
         raise ExCloneError("--overwrite replaces what --resume keeps; give one of them")
     targets = args.target or []
-    args.batch = len(targets) > 1 or any(files.split_spec(t)[0].is_dir() for t in targets) \
+    args.batch = len(targets) > 1 or any(split_spec(t)[0].is_dir() for t in targets) \
         or (args.summary_only and bool(targets))
     if not args.batch:
         args.target = targets[0] if targets else None
@@ -161,6 +161,46 @@ def parse_args(argv):
                 raise ExCloneError(f"{option} names one file; with several targets each one's "
                                    "outputs go to --out-dir")
     return args
+
+
+def script_arguments(blender_executable):
+    if "--" in sys.argv:
+        return sys.argv[sys.argv.index("--") + 1:]
+    # Inside the Blender executable, sys.argv holds Blender's own options.
+    return [] if blender_executable else sys.argv[1:]
+
+
+def started_clone_process(argv):
+    """A CloneProcess reading the source, started now, when argv asks for one target from a
+    source of plain files (the bundled library, a folder of OBJs), and cloning at once without
+    --landmarks (they are read beside the target); else None (everything runs in this
+    process). Bad arguments are left for main to report."""
+    try:
+        args = parse_args(argv)
+    except ExCloneError:
+        return None
+    if args.batch or not source_is_plain_files(args.source) or not can_fork():
+        return None
+    try:
+        return CloneProcess(args.source, args.shapes, args.target, guess=args.landmarks is None)
+    except OSError:     # no process to be had (a limit on them): all of it in this one
+        return None
+
+
+# The bpy module's Python (Blender's own has loaded bpy before this script): the source is read
+# and the clone made in a copy of this process while this one loads Blender.
+CLONE_PROCESS = started_clone_process(script_arguments(blender_executable=False)) \
+    if __name__ == "__main__" and "bpy" not in sys.modules else None
+
+import bpy  # noqa: E402
+import cv2  # noqa: E402
+import numpy as np  # noqa: E402
+from exclone_addon.blender import (character, character_keys, files, mesh_io, preview,  # noqa: E402
+                                     workflow)
+from exclone_addon.core import data, reports  # noqa: E402
+from exclone_addon.core.expression_measures import summary  # noqa: E402
+from exclone_addon.core.landmarks import checked_pairs  # noqa: E402
+from exclone_addon.core.mesh import PolyMesh, write_obj  # noqa: E402
 
 
 # -- one target ----------------------------------------------------------------------------------
@@ -179,7 +219,7 @@ class OutputPaths:
 
 def output_paths(args):
     """Where one target's outputs go; ExCloneError at once if any of them cannot be written."""
-    target_file = data.DEMO_HEAD_FILE if args.target is None else files.split_spec(args.target)[0]
+    target_file = data.DEMO_HEAD_FILE if args.target is None else split_spec(args.target)[0]
     out = Path(args.out) if args.out else Path("out") / f"{target_file.stem}_exclone.blend"
     if out.suffix.lower() not in OUT_SUFFIXES:
         raise ExCloneError(f"--out must name a .blend, .glb or .fbx file, got {out}")
@@ -200,22 +240,8 @@ def source_inputs(spec):
     """The files a --source spec reads (none of them may be overwritten)."""
     if spec is None:
         return [data.LIBRARY_FILE]
-    path = files.split_spec(spec)[0]
+    path = split_spec(spec)[0]
     return [path, *sorted(path.glob("*.obj"))] if path.is_dir() else [path]
-
-
-def selected_shapes(source, shapes):
-    """The source restricted to the --shapes list (None: all of it)."""
-    if shapes is None:
-        return source
-    wanted = list(dict.fromkeys(name.strip() for name in shapes.split(",") if name.strip()))
-    if not wanted:
-        raise ExCloneError("--shapes names no expression")
-    unknown = [name for name in wanted if name not in source.names]
-    if unknown:
-        raise ExCloneError(f"unknown expression(s) {', '.join(unknown)}; available: "
-                           f"{', '.join(source.names[:6])}, ... ({len(source.names)} in all)")
-    return source.subset(wanted)
 
 
 def read_landmarks(path, n_source, n_target):
@@ -351,18 +377,27 @@ class Inputs:
     read: list            # every input file read (none may be overwritten)
 
 
-def read_inputs(args, paths, timings):
-    """Source, target and landmarks, each checked; ExCloneError before any cloning."""
+def read_inputs(args, paths, timings, clone_process=None):
+    """Source, target and landmarks, each checked; ExCloneError before any cloning. The source
+    is read here, or by clone_process (CloneProcess: it has been reading it meanwhile)."""
+    find_face = workflow.character_face
+    if clone_process is None:
+        clock = time.perf_counter()
+        if not source_is_plain_files(args.source):  # the others are read by Blender
+            empty_factory_scene()
+        source = selected_shapes(files.load_source(args.source), args.shapes)
+        timings["read_source"] = time.perf_counter() - clock
+    else:   # the face it found, if it found it on this very object
+        find_face = functools.partial(clone_process.face, find=workflow.character_face)
     clock = time.perf_counter()
-    if not files.source_is_plain_files(args.source):   # the others are read through Blender
-        empty_factory_scene()
-    source = selected_shapes(files.load_source(args.source), args.shapes)
-    timings["read_source"] = time.perf_counter() - clock
-    clock = time.perf_counter()
-    empty_factory_scene()  # the saved file holds only the target
-    target = files.load_target(args.target)
-    timings["read_target"] = time.perf_counter() - clock
-    inputs = source_inputs(args.source) + [files.split_spec(args.target)[0] if args.target
+    try:
+        empty_factory_scene()  # the saved file holds only the target
+        target = files.load_target(args.target, find_face)
+        timings["read_target"] = time.perf_counter() - clock
+    finally:
+        if clone_process is not None:   # a bad source is the error reported, as if read first
+            source, timings["read_source"] = clone_process.source()
+    inputs = source_inputs(args.source) + [split_spec(args.target)[0] if args.target
                                            else data.DEMO_HEAD_FILE]
     landmarks = None
     if args.landmarks:
@@ -452,40 +487,33 @@ def build_report(args, paths, inputs, result, written, timings):
     }
 
 
-def run(args):
+def run(args, clone_process=None):
     """One target, everything the CLI does; returns the report (a dict), or None when --resume
     finds it done. ExCloneError on bad input or an output that cannot be written, and then no
-    output is left behind."""
-    started = time.perf_counter()
+    output is left behind. clone_process: a CloneProcess reading the source and cloning (else
+    both are done here); the report's total time counts from its start, else from now."""
+    started = time.perf_counter() if clone_process is None else clone_process.started
     paths = output_paths(args)
     if args.resume and paths.report.is_file():
         print(f"skipped: {paths.report} exists, the target is done (--resume)")
         return None
     timings = {}
-    inputs = read_inputs(args, paths, timings)
-    clock = time.perf_counter()
+    inputs = read_inputs(args, paths, timings, clone_process)
     # only the head of the face's object is solved, in world space (files.load_target)
     target = inputs.target
     face, landmarks = workflow.in_head(target.face, character.parts([target.obj])[0],
                                        inputs.landmarks)
     target.face = face
-    result = clone_expressions(inputs.source.mesh, inputs.source.deltas, inputs.source.names,
-                               face.head.mesh, landmarks=landmarks,
-                               source_landmarks=inputs.source.automatic_landmarks,
-                               settings=CloneSettings(), progress=_print_progress(),
-                               face_guide=face.guide, fixed_vertices=face.head.fixed,
-                               shared_vertices=core_character.shared_vertices(inputs.source, face))
-    timings.update({f"clone_{phase}": seconds for phase, seconds in result.timings.items()})
-    timings["clone_total"] = time.perf_counter() - clock
+    if clone_process is None:
+        done = cloned(inputs.source, face, landmarks, _print_progress())
+    else:
+        done = clone_process.clone(face, landmarks, _print_progress())
+    result, measures, landmarks = done.result, done.measures, done.landmarks
+    timings.update(done.timings)
     clock = time.perf_counter()
-    # beside the source, so that the stretch is counted beyond the source's own (excess_stretch)
-    measures = measure_clone(face.head.mesh, result, source=inputs.source.mesh,
-                             source_deltas=inputs.source.deltas)
-    landmarks = dict(zip(result.landmark_names, face.world_points(
-        face.head.mesh.vertices[np.asarray(result.target_landmarks)])))
     # from here on, the face's object's own numbering and coordinates
     result.deltas = workflow.face_object_deltas(target.obj, face, result.deltas)
-    timings["measures"] = time.perf_counter() - clock
+    timings["measures"] += time.perf_counter() - clock
     with Outputs() as outputs:
         written = write_outputs(outputs, paths, inputs.target, result, timings, landmarks,
                                 measures)
@@ -515,12 +543,12 @@ def batch_targets(specs):
     """The --target values with each folder replaced by its mesh files (sorted by name)."""
     targets = []
     for spec in specs:
-        path, _ = files.split_spec(spec)
+        path, _ = split_spec(spec)
         if not path.is_dir():
             targets.append(spec)
             continue
         found = sorted(p for p in path.iterdir()
-                       if p.is_file() and p.suffix.lower() in files.TARGET_SUFFIXES)
+                       if p.is_file() and p.suffix.lower() in TARGET_SUFFIXES)
         if not found:
             raise ExCloneError(f"target folder {path} holds no .blend, .obj, .fbx, .glb or "
                                ".gltf file")
@@ -532,7 +560,7 @@ def output_stems(targets):
     """One output name per target: the file's stem (and object), made unique with -2, -3..."""
     stems, seen = [], {}
     for spec in targets:
-        path, name = files.split_spec(spec)
+        path, name = split_spec(spec)
         stem = _file_stem(path.stem + (f"_{name}" if name else ""))
         seen[stem] = seen.get(stem, 0) + 1
         stems.append(stem if seen[stem] == 1 else f"{stem}-{seen[stem]}")
@@ -622,7 +650,7 @@ def available_memory():
 def estimated_vertices(spec):
     """A target's vertex count for sizing jobs: an OBJ's vertex lines, another file's size over
     FILE_BYTES_PER_VERTEX (an overestimate); 0 if it cannot be read (it will fail anyway)."""
-    path = files.split_spec(spec)[0]
+    path = split_spec(spec)[0]
     try:
         if path.suffix.lower() == ".obj":
             with path.open("rb") as handle:
@@ -655,8 +683,8 @@ def _batch_paths(args, specs):
     summary_path = Path(args.report) if args.report else out_dir / "batch_report.json"
     if summary_path.suffix.lower() != ".json":
         raise ExCloneError(f"--report must name a .json file, got {summary_path}")
-    refuse_overwriting_inputs([summary_path], [files.split_spec(t)[0] for t in specs
-                                               if files.split_spec(t)[0].exists()])
+    refuse_overwriting_inputs([summary_path], [split_spec(t)[0] for t in specs
+                                               if split_spec(t)[0].exists()])
     check_folder_writable(out_dir)
     check_output_writable(summary_path)
     if args.export_dir:
@@ -804,23 +832,18 @@ def run_batch(args):
     return summary
 
 
-def main(argv):
-    """Run the CLI on argv (the arguments after the script); returns the exit code."""
+def main(argv, clone_process=None):
+    """Run the CLI on argv (the arguments after the script); returns the exit code.
+    clone_process: started_clone_process(argv)'s, stopped on return."""
     def work():
         args = parse_args(argv)
         if args.batch:
             run_batch(args)
         else:
-            run(args)
+            run(args, clone_process)
 
-    return run_main(PROG, work)
-
-
-def script_arguments():
-    if "--" in sys.argv:
-        return sys.argv[sys.argv.index("--") + 1:]
-    # Inside the Blender executable, sys.argv holds Blender's own options.
-    return [] if bpy.app.binary_path else sys.argv[1:]
+    with clone_process or contextlib.nullcontext():
+        return run_main(PROG, work)
 
 
 def _exit_now(code):
@@ -835,4 +858,5 @@ def _exit_now(code):
 
 
 if __name__ == "__main__":
-    _exit_now(main(script_arguments()))
+    _exit_now(main(script_arguments(blender_executable=bool(bpy.app.binary_path)),
+                   CLONE_PROCESS))

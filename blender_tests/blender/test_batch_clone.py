@@ -21,12 +21,12 @@ import numpy as np
 import pytest
 
 from blender_tests.helpers.paths import REPO_ROOT
-from exclone_addon.core import data
+from exclone_addon.core import character as core_character, data
 from exclone_addon.blender import files, mesh_io
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import PolyMesh, read_obj, write_obj
-from scripts import batch_clone
+from scripts import batch_clone, clone_worker
 from scripts.exclone_cli import Outputs
 
 SCRIPT = REPO_ROOT / "scripts" / "batch_clone.py"
@@ -441,6 +441,60 @@ def test_an_obj_of_the_librarys_own_mesh_takes_its_expressions_vertex_by_vertex(
         for part, (start, stop) in library.parts.items():
             # the smile moves ICT's neck below the head's cut, held still (5.1% there)
             assert error[start:stop].max() < (0.06 if part == "face" else 0.02), (name, part)
+
+
+def _blenders_parts(spec):
+    """The Parts Blender makes of a target spec (files.load_target), its face not found."""
+    parts = []
+    bpy.ops.wm.read_homefile(use_empty=True, use_factory_startup=True)
+    files.load_target(spec, find_face=lambda found: parts.extend(found) or
+                      core_character.whole(found[0], 0))
+    return parts
+
+
+def write_head_with_a_duplicate_face(path):
+    """The demo head with its first face twice: Blender's object of it (mesh validate) has the
+    duplicate removed."""
+    text = DEMO_HEAD.read_text()
+    face = next(line for line in text.splitlines() if line.startswith("f "))
+    path.write_text(text + "\n" + face + "\n")
+
+
+def test_the_forked_clone_makes_the_object_blender_makes_of_an_obj(tmp_path):
+    """The forked copy of the CLI (clone_worker) finds the face on the object it makes of an
+    OBJ target without Blender; batch_clone uses it only if it is Blender's to the bit, which
+    it is for the demo head and the library's own mesh (several parts, 26k vertices), and not
+    for a mesh that Blender repairs (a duplicate face)."""
+    write_obj(tmp_path / "ict.obj", load_library().mesh)
+    write_head_with_a_duplicate_face(tmp_path / "repaired.obj")
+    for spec, same in ((None, True), (str(tmp_path / "ict.obj"), True),
+                       (str(tmp_path / "repaired.obj"), False)):
+        parts = _blenders_parts(spec)
+        assert len(parts) == 1
+        assert clone_worker.same_part(clone_worker.target_part(spec), parts[0]) == same, spec
+    assert clone_worker.target_part(str(tmp_path / "missing.obj")) is None
+
+
+def test_a_target_the_fork_reads_otherwise_than_blender_gets_blenders_face(tmp_path):
+    """An OBJ that Blender repairs: the forked copy's face is not used, the face is found on
+    Blender's object and cloned; the keys and report are those of a run in one process
+    (batch_clone.main here)."""
+    target = tmp_path / "repaired.obj"
+    write_head_with_a_duplicate_face(target)
+    options = ["--target", str(target), "--no-preview", "--shapes", "jawOpen,eyeBlink_L"]
+    result = run_cli(*options, "--out", tmp_path / "forked.blend", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert batch_clone.main(options + ["--out", str(tmp_path / "one.blend")]) == 0
+    reports = [json.loads((tmp_path / f"{name}.json").read_text()) for name in ("forked", "one")]
+    for key in ("quality", "landmarks", "measures", "counts"):
+        assert reports[0][key] == reports[1][key], key
+    keys = []
+    for name in ("forked", "one"):
+        with bpy.data.libraries.load(str(tmp_path / f"{name}.blend")) as (src, dst):
+            dst.objects = src.objects
+        keys.append(mesh_io.shape_keys_from_object(dst.objects[0]))
+    assert keys[0][0] == keys[1][0] == ["jawOpen", "eyeBlink_L"]
+    assert np.array_equal(keys[0][1], keys[1][1])
 
 
 def test_output_names_are_unique_per_target():

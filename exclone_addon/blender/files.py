@@ -9,20 +9,16 @@ source file's object (:Object, else its first mesh with shape keys by name) is r
 operators read a source object: the face is found on it and only its head region's motion is
 the source (workflow.object_source), so a full body with expression keys is a source.
 """
-import math
 from dataclasses import dataclass
 from pathlib import Path
 
 import bpy
 
-from ..core import data, library
+from ..core import data
 from ..core.errors import ExCloneError
-from ..core.mesh import MeshError, PolyMesh, check_mesh, read_obj
-from . import character, mesh_io, workflow
-
-IMPORTERS = {".fbx": "fbx", ".glb": "gltf", ".gltf": "gltf"}
-CONTAINERS = (".blend",) + tuple(IMPORTERS)
-TARGET_SUFFIXES = (".obj",) + CONTAINERS
+from ..core.mesh import PolyMesh, read_obj
+from . import character, mesh_io, plain_files, workflow
+from .plain_files import CONTAINERS, IMPORTERS, split_spec
 
 
 @dataclass
@@ -32,14 +28,6 @@ class Target:
     obj: object                     # the face's object, in the current scene: it gets the keys
     objects: list                   # the character's mesh objects in the scene (obj among them)
     face: object                    # core.character.CharacterFace: the face's object and head
-
-
-def split_spec(spec):
-    """'file.blend:Object' -> (Path('file.blend'), 'Object'); anything else -> (Path, None)."""
-    head, sep, name = spec.rpartition(":")
-    if sep and Path(head).suffix.lower() in CONTAINERS and name and not Path(spec).exists():
-        return Path(head), name
-    return Path(spec), None
 
 
 def _has_shape_keys(obj):
@@ -97,22 +85,6 @@ def pick_object(path, name, role, need_shape_keys):
     return meshes[0]
 
 
-def _existing(path, role):
-    if not path.exists():
-        raise ExCloneError(f"{role} not found: {path}")
-    return path
-
-
-def _checked(mesh, what):
-    """The mesh if the engine can use it (core.mesh.check_mesh); errors start with `what`."""
-    try:
-        triangles = mesh.triangles()
-    except MeshError as exc:    # triangulation errors do not say which mesh
-        raise MeshError(f"{what}: {exc}") from exc
-    check_mesh(mesh.vertices, triangles, what=what)
-    return mesh
-
-
 def _library_from_file(path, name, role):
     """The object's shape keys as the Blender operators read a source object
     (workflow.object_source: a full body's head region only)."""
@@ -122,29 +94,9 @@ def _library_from_file(path, name, role):
 
 
 def load_source(spec, role="source"):
-    """The expressions of a source spec as a core.library.ExpressionLibrary whose description
-    names the file (and object): None = the bundled library, a folder of OBJs, or a
-    .blend[:Object], .fbx, .glb or .gltf mesh with shape keys."""
-    if spec is None:
-        source = library.load_library()
-    else:
-        path, name = split_spec(spec)
-        suffix = _existing(path, role).suffix.lower()
-        if path.is_dir():
-            source = library.load_obj_folder(path)
-        elif suffix == ".obj":
-            raise ExCloneError(f"{role} {path} is an OBJ file, which cannot hold shape keys: give a "
-                               "folder with neutral.obj + one OBJ per expression, or a .blend, "
-                               ".fbx or .glb mesh with shape keys")
-        elif suffix in CONTAINERS:
-            source = _library_from_file(path, name, role)
-        else:
-            raise ExCloneError(f"{role} {path}: unsupported file type '{path.suffix}' "
-                               "(use .blend, .fbx, .glb or a folder of OBJs)")
-    _checked(source.mesh, f"{role} {source.description}")
-    if not source.names:
-        raise ExCloneError(f"{role} {source.description} has no expressions")
-    return source
+    """plain_files.load_source, a .blend[:Object], .fbx, .glb or .gltf source read through
+    Blender."""
+    return plain_files.load_source(spec, role, read_container=_library_from_file)
 
 
 def _keep_only(objects):
@@ -176,17 +128,19 @@ def _character_in(path, name):
     return meshes
 
 
-def load_target(spec):
+def load_target(spec, find_face=workflow.character_face):
     """The target spec (None = the bundled demo head) as a Target whose object sits in the
-    current scene, alone. An OBJ becomes a new object whose mesh keeps the file's coordinates,
-    rotated +90 degrees about X (OBJ is Y-up, Blender Z-up)."""
+    current scene, alone, its face found by find_face(character.parts(objects)). An OBJ becomes
+    a new object whose mesh keeps the file's coordinates, rotated by plain_files.OBJ_ROTATION
+    (+90 degrees about X: OBJ is Y-up, Blender Z-up)."""
     path, name = (data.DEMO_HEAD_FILE, None) if spec is None else split_spec(spec)
-    suffix = _existing(path, "target").suffix.lower()
+    suffix = plain_files.existing(path, "target").suffix.lower()
     if path.is_dir():
         raise ExCloneError(f"target {path} is a folder; give a .blend, .obj, .fbx or .glb file")
     if suffix == ".obj":
-        obj = mesh_io.object_from_mesh(path.stem, _checked(read_obj(path), f"target {path}"))
-        obj.rotation_euler = (math.pi / 2, 0.0, 0.0)
+        obj = mesh_io.object_from_mesh(path.stem,
+                                       plain_files.checked(read_obj(path), f"target {path}"))
+        obj.rotation_euler = plain_files.OBJ_ROTATION
         objects = [obj]
     elif suffix in CONTAINERS:
         objects = _character_in(path, name)
@@ -196,22 +150,16 @@ def load_target(spec):
     for obj in objects:
         mesh_io.checked_editable(obj)
     _keep_only(objects)
-    face = workflow.character_face(character.parts(objects))
+    face = find_face(character.parts(objects))
     obj = objects[face.part]
     description = str(path) if suffix == ".obj" else f"{path}:{obj.name}"
-    mesh = _checked(mesh_io.mesh_from_object(obj, what="target"), f"target {description}")
+    mesh = plain_files.checked(mesh_io.mesh_from_object(obj, what="target"),
+                               f"target {description}")
     return Target(description, mesh, obj, objects, face)
-
-
-def source_is_plain_files(spec):
-    """True if load_source reads this source without Blender (the bundled library, a folder of
-    OBJs): the command line then need not reset Blender's scene for it."""
-    return spec is None or split_spec(spec)[0].is_dir()
 
 
 # -- writing ------------------------------------------------------------------------------------
 
-RESULT_SUFFIXES = (".blend", ".glb", ".fbx")
 # The first bytes of a whole file of each exported type (a cut-short write lacks them or is empty).
 _MAGIC = {".glb": b"glTF", ".fbx": b"Kaydara FBX Binary"}
 

@@ -308,18 +308,12 @@ def write_face_keys(target, names, head_deltas, replace_existing):
 
 
 def character_face(parts):
-    """core.character.find on the character's parts (world space), remembered for the same
-    meshes; a lone mesh on which no face is found is used whole (the face's own geometry then
-    places the landmarks, or says why it cannot)."""
+    """core.character.found_or_whole on the character's parts (world space), remembered for
+    the same meshes."""
     key = digest(*[value for part in parts for value in (
         part.name, part.mesh.vertices, part.mesh.loop_totals, part.mesh.loop_vertices)])
     if key not in _faces:
-        try:
-            remember(_faces, key, core_character.find(parts))
-        except ExCloneError as error:
-            if len(parts) > 1:
-                raise
-            remember(_faces, key, core_character.whole(parts[0], 0, not_found=str(error)))
+        remember(_faces, key, core_character.found_or_whole(parts))
     _faces.move_to_end(key)
     return _faces[key]
 

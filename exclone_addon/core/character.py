@@ -215,6 +215,17 @@ def find(parts):
     return CharacterFace(index, parts[index].name, head, own, turn=turn, origin=origin)
 
 
+def found_or_whole(parts):
+    """find(parts), except that a lone mesh on which no face is found is used whole (the face's
+    own geometry then places the landmarks, or says why it cannot)."""
+    try:
+        return find(parts)
+    except ExCloneError as error:
+        if len(parts) > 1:
+            raise
+        return whole(parts[0], 0, not_found=str(error))
+
+
 def source_head(source, face):
     """The ExpressionLibrary `source` (read whole from one mesh) cut to the head region of the
     CharacterFace found on that mesh, as a target's is: the head's polygons and the expressions'
