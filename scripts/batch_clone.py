@@ -61,7 +61,7 @@ except ImportError:
 SCRIPT = Path(__file__).resolve()
 sys.path[:0] = [str(SCRIPT.parent.parent), str(SCRIPT.parent)]  # exclone_addon, exclone_cli
 # The engine (and what parses the arguments) before Blender, which is loaded below
-from clone_worker import CloneProcess, can_fork, cloned, selected_shapes  # noqa: E402
+from clone_worker import ONE_PROCESS, CloneProcess, can_fork, cloned, selected_shapes  # noqa: E402
 from exclone_cli import (Outputs, Parser, check_folder_writable, check_output_writable,  # noqa: E402
                          number, run_main)
 from exclone_addon.blender.plain_files import (RESULT_SUFFIXES, TARGET_SUFFIXES,  # noqa: E402
@@ -76,9 +76,9 @@ MIB = 1024 * 1024
 # process, 57 expressions, --no-preview, the streamed transfer): 520 MiB onto the 4,244-vertex
 # demo head, 875 MiB onto the 66,649-vertex MakeHuman dense head, i.e. ~500 MiB + 5.8 KiB per
 # target vertex. Rounded up, the slope doubled (other sources, more expressions): a batch errs
-# towards fewer jobs, never towards swapping. The forked copy (clone_worker, a source of plain
-# files) adds ~100 MiB: 643 MiB summed RSS (491 MiB PSS) onto the demo head.
-JOB_BASE_BYTES = 640 * MIB
+# towards fewer jobs, never towards swapping. Several jobs' targets run without the forked copy
+# (clone_worker.ONE_PROCESS), which would add ~100 MiB each.
+JOB_BASE_BYTES = 512 * MIB
 JOB_BYTES_PER_VERTEX = 12 * 1024
 # A target that is not an OBJ is not opened to count its vertices: its file size over this
 # many bytes per vertex (a glTF/FBX/.blend holds at least a position, a normal and UVs per
@@ -626,9 +626,10 @@ def _run_target(command, target, shared_args, env, started):
 
 def _batch_environment(jobs):
     env = dict(os.environ)
-    if jobs > 1:  # the processes share the cores: one BLAS thread pool each, not one per core
-        for name in BLAS_THREADS:
+    if jobs > 1:  # the processes share the cores: one BLAS thread pool each, not one per core,
+        for name in BLAS_THREADS:  # and no forked copy (clone_worker)
             env.setdefault(name, str(max(1, (os.cpu_count() or 1) // jobs)))
+        env[ONE_PROCESS] = "1"
     return env
 
 

@@ -118,10 +118,16 @@ def same_part(part, other):
                              (part.mesh.loop_vertices, other.mesh.loop_vertices)))
 
 
+# Set (to anything) in a process that must not fork: a batch running several targets at a time
+# shares the cores between them, so a copy would only add its memory (~100 MiB).
+ONE_PROCESS = "EXCLONE_ONE_PROCESS"
+
+
 def can_fork():
-    """True where CloneProcess runs: Linux. Windows cannot fork, and on macOS a forked child
-    may not use what its parent loaded of the system's frameworks (numpy's Accelerate)."""
-    return sys.platform.startswith("linux")
+    """True where CloneProcess runs: Linux, unless ONE_PROCESS is set. Windows cannot fork, and
+    on macOS a forked child may not use what its parent loaded of the system's frameworks
+    (numpy's Accelerate)."""
+    return sys.platform.startswith("linux") and ONE_PROCESS not in os.environ
 
 
 class CloneProcess:
