@@ -5,8 +5,8 @@ height along the whole lid (met: the rims' station goals of core.rims), lips sea
 mouthClose: the lips stand no more than 0.2% of the diagonal further apart than at rest (met;
 they may press together past rest: the library's own lip landmarks do by 0.78% of its diagonal,
 its lower lip folded under the upper), no edge stretched more than 2.5x beyond the source's
-own stretch (not reached on every head with both numpy versions). Where a bar is met the test
-asserts the bar; elsewhere what is reached, with a margin, and says so. Skipped without the
+own stretch at jawOpen (met: core.transfer.STRETCH_BOUND). Where a bar is met the test asserts
+the bar; elsewhere what is reached, with a margin, and says so. Skipped without the
 shared data. Run with -s to see the figures."""
 from functools import lru_cache
 
@@ -23,9 +23,8 @@ from exclone_addon.core.library import load_library
 
 EXPRESSIONS = ["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthClose"]
 BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this share of its opening
-# file -> (face object, the worst excess stretch reached at jawOpen, the flipped triangles at
-# jawOpen). Blinks
-# measured with numpy 1.26 and numpy 2 alike: male body 8.0% / 7.8% (ICT's own blink leaves 9.7%
+# file -> (face object, the flipped triangles at jawOpen: the more of .venv's and .venv313's).
+# Blinks measured with numpy 1.26 and numpy 2 alike: male body 8.0% / 7.8% (ICT's own blink leaves 9.7%
 # and 7.2% at the inner station), child body 7.7% / 4.9%, stylised head 7.7% / 5.4%, old woman's
 # body (the fbx's Body object alone) 6.7% / 4.6%, the 485-vertex low-poly head 9.3% / 7.5% (rows
 # of three or four vertices; its corners the openings' ends as seen). With the rims' pull at a
@@ -36,25 +35,25 @@ BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this shar
 # images: 24% / 18%, 35% / 35%, 67% / 49%; the old woman's left eye took them while the rows'
 # smoothness was judged against a parabola: 27%). Excess stretch
 # at jawOpen in .venv / .venv313 (Blender 5.0.1 and 5.2 load the heads 1e-15 apart; the worst
-# edge, beside the mouth corners): male body 2.39 / 2.94, child body 1.83 / 2.81, stylised head
-# 1.70 / 1.72 (the bar met), low-poly head 2.0 / 2.0, old woman's body 3.43 / 3.36; before the
-# straddling images took their source triangles' mean gradient (core.transfer.STRADDLE): 2.39 /
-# 2.94, 2.15 / 2.73, 3.13 / 3.13, 2.0 / 2.0, 3.42 / 3.36. Not the issue's 2.5 on three: the
-# library's corner strip stretches 7-37x and the mouth corners meet only to 0.05-0.26 mouth
-# widths, so a corner edge's figure rests on which side of the strip its images fall, and each
-# figure is one draw from a wide spread (docs/method.md §7, "At the mouth corners", which also
-# checks the measure: the worst edges' images lie within 0.03 source mouth widths of triangles
-# stretched over 2.5x, yet a direction-free reference would pass a straddling image, so the
-# edge's own image stays the reference; and lists the goal caps and weights tried and not kept).
+# edge, beside the mouth corners): male body 2.39 / 2.14, child body 1.83 / 1.83, stylised head
+# 1.70 / 1.72, low-poly head 2.00 / 2.00, old woman's body 1.93 / 1.93 (flips 4 / 1, 0 / 2,
+# 0 / 0, 0 / 0, 2 / 1); before the goals around a passing edge were capped
+# (core.transfer.STRETCH_BOUND): 2.39 / 2.94, 1.83 / 2.81, 1.70 / 1.72, 2.0 / 2.0, 3.43 / 3.36
+# (flips up to 4, 1, 0, 0, 3), each figure one draw from a wide spread (over the head and 6
+# copies moved by 1e-12 of its diagonal, .venv: male up to 4.43, child 4.67, low-poly 2.97; now
+# 2.42, 1.87, 2.00, docs/method.md §8 "Stretch bounded"); before the straddling images took
+# their source triangles' mean gradient (core.transfer.STRADDLE): 2.39 / 2.94, 2.15 / 2.73,
+# 3.13 / 3.13, 2.0 / 2.0, 3.42 / 3.36. The library's corner strip stretches 7-37x and the mouth
+# corners meet only to 0.05-0.26 mouth widths (docs/method.md §7, "At the mouth corners", which
+# also checks the measure).
 REACHED = {
-    "mh_male_body.blend": ("Body", 2.94, 4),
-    "mh_child_body_expr.blend": ("Body", 2.81, 1),
-    "mh_female_old_body.fbx": ("Body", 3.43, 3),
-    "mh_stylised_head.blend": ("Head", 1.72, 0),
-    "mh_head_lowpoly.glb": ("Head", 2.0, 0),
+    "mh_male_body.blend": ("Body", 4),
+    "mh_child_body_expr.blend": ("Body", 2),
+    "mh_female_old_body.fbx": ("Body", 2),
+    "mh_stylised_head.blend": ("Head", 0),
+    "mh_head_lowpoly.glb": ("Head", 0),
 }
-STRETCH_MARGIN = 1.25      # x the reached excess stretch: the worst edge is a tail figure that
-                           # moves by up to 25% between numpy 1.26 and numpy 2 with the same code
+STRETCH_BAR = 2.5          # the issue's: no edge stretched more than this beyond the source's
 FLIP_MARGIN = 3
 OVERRUN = 0.4              # a closing upper lid passes below the lower lid's edge by no more
                            # than this share of the open height (expression_measures'
@@ -114,12 +113,12 @@ def test_blinks_close_on_their_own_side(file_name, shared_data):
 
 
 @pytest.mark.parametrize("file_name", sorted(REACHED))
-def test_jaw_opens_without_more_stretch_than_reached(file_name, shared_data):
+def test_jaw_opens_without_excess_stretch(file_name, shared_data):
     found = measured(file_name)
-    _, stretch, flips = REACHED[file_name]
+    _, flips = REACHED[file_name]
     jaw = found["jawOpen"]
     assert jaw["lip_gap"] > LIPS_PART
-    assert jaw["excess_stretch"] <= STRETCH_MARGIN * stretch
+    assert jaw["excess_stretch"] <= STRETCH_BAR
     assert jaw["flipped_triangles"] <= flips + FLIP_MARGIN
 
 
@@ -178,6 +177,7 @@ def test_jaw_opens_on_a_triangulated_body(shared_data):
     batch job, where the automatic landmarks fell a hair differently, 105-110x: a torn corner,
     94.9x excess stretch and 27 flips). Such a straddling image now takes the mean gradient of
     the source triangles under its corners (core.transfer.STRADDLE): 5.0x -> 3.08x / 2.99x
-    excess stretch at jawOpen (.venv / .venv313; the batch's 94.9x -> 3.21x)."""
+    excess stretch at jawOpen (.venv / .venv313; the batch's 94.9x -> 3.21x); with the goals
+    around a passing edge capped (core.transfer.STRETCH_BOUND) 1.79x (both venvs, no flips)."""
     jaw = measured("mh_female_old_body.fbx", triangulated=True)["jawOpen"]
-    assert jaw["excess_stretch"] <= STRETCH_MARGIN * 3.08, jaw
+    assert jaw["excess_stretch"] <= STRETCH_BAR, jaw

@@ -521,14 +521,21 @@ class _Shape:
         if image_rest is None:
             return {"excess_stretch": None,
                     "excess_stretch_reason": "measured only beside the source's expressions"}
-        image_lengths = self._lengths(image_rest)
-        usable = (self.rest_lengths > 0) & (image_lengths > COLLAPSED * self.rest_lengths)
-        target = self._lengths(self.vertices + delta)[usable] / self.rest_lengths[usable]
-        source = self._lengths(image_rest + image_delta)[usable] / image_lengths[usable]
-        # an edge the source shortens and the clone keeps is not stretched: the source's
-        # stretch counts from 1
-        excess = target / np.maximum(source, 1.0)
+        excess = excess_stretches(self.rest_lengths, self._lengths(self.vertices + delta),
+                                  self._lengths(image_rest), self._lengths(image_rest + image_delta))
         return {"excess_stretch": float(excess.max(initial=1.0))}
+
+
+def excess_stretches(rest, deformed, image_rest, image_deformed):
+    """Each edge's stretch beyond its image's on the source, from the lengths of the edges at
+    rest (k,) and deformed (..., k) and of their images at rest (k,) and deformed (..., k): the
+    edge's stretch over the image's (counted from 1); 0 where the edge or its image has no
+    length (COLLAPSED)."""
+    usable = (rest > 0) & (image_rest > COLLAPSED * rest)
+    rest, image_rest = np.where(usable, rest, 1.0), np.where(usable, image_rest, 1.0)
+    # an edge the source shortens and the clone keeps is not stretched: the source's stretch
+    # counts from 1
+    return np.where(usable, (deformed / rest) / np.maximum(image_deformed / image_rest, 1.0), 0.0)
 
 
 def measure_clone(target, result, names=None, deltas=None, source=None, source_deltas=None):

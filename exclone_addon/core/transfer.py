@@ -39,6 +39,7 @@ except ImportError:     # an install without the bundled wheel: SuperLU serves a
     cholespy = None
 
 from . import deformation
+from .expression_measures import excess_stretches
 from .errors import ExCloneError
 from .mesh import vertex_parts
 from .proximity import components_dot
@@ -107,6 +108,18 @@ TRIANGLES_PER_CHUNK = 8192
 # corners it read up to 2.4 on the remeshed known-answer face (its exact registration), across
 # the parting lips 105-110 (the old woman's triangulated body, a torn mouth corner).
 STRADDLE = 3.0
+# The issue's bar: no target edge stretched more than this beyond its image's stretch on the
+# source (expression_measures.excess_stretches). Where a solved expression passes it, the goals
+# of the triangles around the passing edges take their singular values capped at it (their
+# rotations kept), the same triangles for every expression transferred together, and what that
+# changes is solved alone (the solve is linear; the factorisation is kept). The region grows by
+# a ring of triangles a round while a passing expression's worst edge gives way by GIVING_WAY,
+# for at most BOUND_ROUNDS rounds. The library's mouth corners open in a strip of thin triangles
+# stretched 7-37x; target triangles whose images fall on it take that stretch beside edges
+# whose own images lie off it (docs/method.md §8, "Stretch bounded").
+STRETCH_BOUND = 2.5
+BOUND_ROUNDS = 8           # the child's mouth-open onto the ICT neutral needed 7
+GIVING_WAY = 0.99          # at 50k vertices one edge crept 2.5674 -> 2.5666 over four rounds
 
 
 class Transfer:
@@ -117,6 +130,7 @@ class Transfer:
         a head cut out of a body): their unknowns are eliminated from the normal equations, and
         a connected part holding any of them is not re-translated afterwards."""
         self.n = len(target_vertices)
+        self.rest_vertices = np.asarray(target_vertices, dtype=np.float64)
         self.triangles = np.asarray(target_triangles)
         self.grad, _ = deformation.gradient_operator(target_vertices, target_triangles, formulation)
         uncovered = np.asarray(weights) <= 0
@@ -250,6 +264,7 @@ class CorrespondedTransfer:
         self.constant = system.constant + self.from_moves @ rest_at
         self._straddle_checks(rest_at, source_triangles, vertex_map)
         self._pair_operators(source_triangles, pairs, weights, np.flatnonzero(~mapped & (weights > 0)))
+        self._bound_checks(source_triangles, vertex_map, weights)
 
     @property
     def factorisation(self):
@@ -289,6 +304,9 @@ class CorrespondedTransfer:
         self.used_source_inverses = deformation.corner_inverses(
             self.source_rest[self.used_source_triangles])
         mean = sp.diags(1.0 / weights[paired_ids]) @ rows[:, used]
+        self.paired_row = np.full(len(weights), -1)
+        self.paired_row[paired_ids] = np.arange(len(paired_ids))
+        self.pair_mean = mean.tocsr()
         self.from_source_gradients = self.system.pulled(sp.kron(mean, sp.identity(3)), paired_ids) \
             if len(used) else None
 
@@ -298,12 +316,18 @@ class CorrespondedTransfer:
         (B, n_s, 3)) -> (B, n, 3), applied to each block."""
         out = np.empty((len(deltas), self.system.n, 3))
         for block in blocks(len(deltas)):
-            moves = self.sampling @ as_columns(deltas[block])                 # (n, 3B)
-            rhs = self._right_hand_side(deltas[block], moves)
-            solved = as_rows(self.system.solved(rhs, moves[self.anchors], self.anchors))
-            out[block] = solved if correction is None else \
-                correction(solved, deltas[block])
+            out[block] = self._solved_block(deltas[block])
+        self._stretch_bounded(out, deltas)
+        if correction is not None:
+            for block in blocks(len(deltas)):
+                out[block] = correction(out[block], deltas[block])
         return out
+
+    def _solved_block(self, deltas):
+        """(B, n, 3) the displacements of B source expressions' deltas (B, n_s, 3)."""
+        moves = self.sampling @ as_columns(deltas)                             # (n, 3B)
+        return as_rows(self.system.solved(self._right_hand_side(deltas, moves), moves[self.anchors],
+                                          self.anchors))
 
     def _right_hand_side(self, deltas, moves):
         """(N, 3B) for B expressions' deltas (B, n_s, 3) and their moves at the target vertices."""
@@ -316,14 +340,15 @@ class CorrespondedTransfer:
             gradients = deformation.deformed_gradients(
                 self.used_source_inverses, (self.source_rest + deltas)[:, self.used_source_triangles])
             rhs += self.from_source_gradients @ as_columns(deformation.stack_gradients(gradients))
-        self._straddling_replaced(rhs, deltas, moves, stretch)
+        ids, expression, wanted, image = self._straddling(deltas, moves, stretch)
+        self._goals_changed(rhs, self.mapped_ids[ids], expression, wanted - image, len(deltas))
         return rhs
 
-    def _straddling_replaced(self, rhs, deltas, moves, stretch):
-        """rhs (N, 3B) with each straddling image's gradient (STRADDLE) replaced by the mean
-        gradient of the source triangles under its triangle's three corners; stretch (m, B):
-        the images' own."""
-        b = len(deltas)
+    def _straddling(self, deltas, moves, stretch):
+        """The straddling images (STRADDLE): (their ids among the mapped triangles (F,), their
+        expressions (F,), the mean gradient of the source triangles under their triangles' three
+        corners (F, 3, 3), which they take instead of their images' own (F, 3, 3)); stretch
+        (m, B): the images' own."""
         ids, expression = np.nonzero(stretch > STRADDLE)       # the limit is at least STRADDLE
         rest_sources = self.source_rest[self.under[ids]]                         # (F, 3, 3, 3)
         sources = rest_sources + deltas[expression[:, None, None], self.under[ids]]
@@ -332,22 +357,182 @@ class CorrespondedTransfer:
         straddling = stretch[ids, expression] > STRADDLE * np.maximum(under.max(axis=1), 1.0)
         ids, expression = ids[straddling], expression[straddling]
         rest_sources, sources = rest_sources[straddling], sources[straddling]
-        if not len(ids):
-            return
-        corners = self.system.triangles[self.mapped_ids[ids]]                    # (F, 3)
-        image = deformation.corner_gradients(
-            self.rest_at[corners], self.rest_at[corners] + as_rows(moves)[expression[:, None], corners])
         wanted = deformation.corner_gradients(rest_sources, sources).mean(axis=1)
-        rows = (3 * self.mapped_ids[ids][:, None] + np.arange(3)).ravel()
+        return ids, expression, wanted, self._image_gradients(ids, expression, moves)
+
+    def _image_gradients(self, ids, expression, moves):
+        """(F, 3, 3) the gradients of the images of mapped triangles ids (F,) (among the mapped)
+        in expressions (F,) of the block whose moves at the target vertices are moves (n, 3B)."""
+        corners = self.system.triangles[self.mapped_ids[ids]]                    # (F, 3)
+        return deformation.corner_gradients(
+            self.rest_at[corners], self.rest_at[corners] + as_rows(moves)[expression[:, None], corners])
+
+    def _goals_changed(self, rhs, triangle_ids, expression, change_gradients, b):
+        """rhs (N, 3B) with the goals of target triangles triangle_ids (F,) in expressions
+        (F,) of the block of b changed by change_gradients (F, 3, 3) (their weights applied)."""
+        if not len(triangle_ids):
+            return
+        rows = (3 * np.asarray(triangle_ids)[:, None] + np.arange(3)).ravel()
         change = np.zeros((len(rows), 3 * b))
         stacked = self.system.given_rows_weight[rows, None] * \
-            deformation.stack_gradients(wanted - image)                          # (3F, 3)
+            deformation.stack_gradients(change_gradients)                        # (3F, 3)
         for axis in range(3):          # each coordinate's column of its expression
             change[np.arange(len(rows)), axis * b + np.repeat(expression, 3)] = stacked[:, axis]
         # these rows of G reach only their triangles' own unknowns: update those alone
         own = self.system.grad[rows]
         unknowns = np.unique(own.indices)
         rhs[unknowns] += own[:, unknowns].T @ change
+
+    def _bound_checks(self, source_triangles, vertex_map, weights):
+        """What STRETCH_BOUND needs: the target's edges with an image at both ends as sparse
+        differences of the target's vertices and of the source's (through the vertex map's
+        closest points, valid or not, as expression_measures reads them), their rest vectors,
+        and which triangles hold each vertex."""
+        triangles = self.system.triangles
+        imaged = np.flatnonzero(vertex_map.triangle >= 0)
+        image_sampling = _barycentric_sampling(vertex_map, source_triangles, imaged,
+                                               self.system.n, len(self.source_rest))
+        has_image = np.zeros(self.system.n, dtype=bool)
+        has_image[imaged] = True
+        edges = np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+        self.bound_edges = edges[has_image[edges].all(axis=1)]
+        k = len(self.bound_edges)
+        self.edge_difference = sp.csr_matrix(
+            (np.tile([-1.0, 1.0], k), (np.repeat(np.arange(k), 2), self.bound_edges.ravel())),
+            shape=(k, self.system.n))
+        self.image_edge_difference = (self.edge_difference @ image_sampling).tocsr()
+        self.rest_edges = self.edge_difference @ self.system.rest_vertices            # (k, 3)
+        self.image_rest_edges = self.image_edge_difference @ self.source_rest         # (k, 3)
+        t = len(triangles)
+        self.vertex_triangles = sp.csr_matrix(
+            (np.ones(3 * t), (triangles.ravel(), np.repeat(np.arange(t), 3))), shape=(self.system.n, t))
+        self.covered = np.asarray(weights) > 0
+
+    def _stretch_bounded(self, out, deltas):
+        """out (E, n, 3), the displacements of source deltas (E, n_s, 3), with the goals around
+        every edge an expression stretches more than STRETCH_BOUND beyond its image capped, the
+        same triangles for every expression (so that expressions added together, jawOpen and
+        mouthClose, still undo each other there); the region grows by a ring of triangles a
+        round while the worst passing edge gives way, for at most BOUND_ROUNDS rounds."""
+        passing = np.zeros((len(deltas), self.system.n), dtype=bool)
+        worst = np.zeros(len(deltas))
+        self._check(out, deltas, np.arange(len(deltas)), passing, worst)
+        region = np.zeros(self.system.n, dtype=bool)
+        capped = np.zeros(len(self.covered), dtype=bool)
+        for _ in range(BOUND_ROUNDS):
+            if not passing.any():
+                break
+            was = worst.copy()
+            region |= passing.any(axis=0)
+            around = (self.vertex_triangles.T @ region.astype(np.float64)) > 0       # (T,)
+            added = np.flatnonzero(around & ~capped & self.covered)
+            capped |= around
+            changed = []
+            for block in blocks(len(deltas)):
+                which, change = self._capping_change(deltas[block], added)
+                out[block][which] += change
+                changed.append(np.arange(len(deltas))[block][which])
+            self._check(out, deltas, np.concatenate(changed), passing, worst)
+            # on while a passing expression's worst edge gives way, a ring of triangles further
+            if not (worst < GIVING_WAY * was)[was > STRETCH_BOUND].any():
+                break
+            region = (self.vertex_triangles @ around.astype(np.float64)) > 0
+
+    def _capping_change(self, deltas, ids):
+        """((B',) the expressions of the block (deltas (B, n_s, 3)) whose goals on the covered
+        target triangles ids stretch more than STRETCH_BOUND, (B', n, 3) what capping them
+        (their rotations kept) changes in those expressions' displacements). The solve is
+        linear in its right-hand side and the parts' translations in the displacements, so the
+        change is solved alone."""
+        b = len(deltas)
+        moves = self.sampling @ as_columns(deltas)                             # (n, 3B)
+        triangles, expression = np.repeat(ids, b), np.tile(np.arange(b), len(ids))
+        goals = self._goals(triangles, expression, deltas, moves, self._straddling_among(
+            triangles, deltas, moves))
+        capped = _singular_values_capped(goals, STRETCH_BOUND)
+        changed = np.abs(capped - goals).max(axis=(1, 2), initial=0.0) > 0
+        which = np.unique(expression[changed])
+        if not len(which):
+            return which, np.zeros((0, self.system.n, 3))
+        rhs = np.zeros((self.system.grad.shape[1], 3 * b))
+        self._goals_changed(rhs, triangles[changed], expression[changed],
+                            (capped - goals)[changed], b)
+        columns = (np.arange(3)[:, None] * b + which).ravel()
+        return which, as_rows(self.system.solved(
+            rhs[:, columns], np.zeros((len(self.anchors), len(columns))), self.anchors))
+
+    def _straddling_among(self, triangles, deltas, moves):
+        """_straddling's first three of the mapped ones among target triangles (F,)."""
+        mapped_index = np.full(len(self.covered), -1)
+        mapped_index[self.mapped_ids] = np.arange(len(self.mapped_ids))
+        rows = np.unique(mapped_index[triangles][mapped_index[triangles] >= 0])
+        b = len(deltas)
+        images = [(edge[rows] @ moves).reshape(-1, 3, b) + rest[rows, :, None]
+                  for edge, rest in zip(self.image_edges, self.rest_image_edges)]
+        stretch = np.zeros((len(self.mapped_ids), b))
+        stretch[rows] = _largest_stretch(self.rest_image_gram[:, rows, None],
+                                         _gram(*images, axis=1))
+        return self._straddling(deltas, moves, stretch)[:3]
+
+    def _check(self, out, deltas, ids, passing, worst):
+        """passing (E, n) and worst (E,) of the expressions ids (_passing_vertices) updated from
+        their displacements out (E, n, 3) and source deltas (E, n_s, 3)."""
+        for block in blocks(len(ids)):
+            chosen = ids[block]
+            passing[chosen], worst[chosen] = self._passing_vertices(out[chosen], deltas[chosen])
+
+    def _passing_vertices(self, displacements, deltas):
+        """((B, n) bool, (B,)): the ends of the edges displacements (B, n, 3) stretch more than
+        STRETCH_BOUND beyond their images under the source's deltas (B, n_s, 3), and each
+        expression's worst excess stretch (1 where no edge stretches past the bound)."""
+        b = len(deltas)
+
+        def lengths(rest, moved):                  # (k, B) from the edges' moves (k, 3B)
+            return np.sqrt(sum((moved[:, axis * b:(axis + 1) * b] + rest[:, axis, None]) ** 2
+                               for axis in range(3)))
+        rest = np.linalg.norm(self.rest_edges, axis=1)
+        stretched = lengths(self.rest_edges, self.edge_difference @ as_columns(displacements))
+        # the image's stretch counts from 1, so only an edge stretched past the bound can pass
+        edges = np.flatnonzero((stretched > STRETCH_BOUND * rest[:, None]).any(axis=1))
+        excess = excess_stretches(
+            rest[edges, None], stretched[edges],
+            np.linalg.norm(self.image_rest_edges[edges], axis=1)[:, None],
+            lengths(self.image_rest_edges[edges],
+                    self.image_edge_difference[edges] @ as_columns(deltas)))
+        passing = np.zeros((b, self.system.n), dtype=bool)
+        edge, expression = np.nonzero(excess > STRETCH_BOUND)
+        passing[np.repeat(expression, 2), self.bound_edges[edges[edge]].ravel()] = True
+        return passing, excess.max(axis=0, initial=1.0)
+
+    def _goals(self, ids, expression, deltas, moves, straddled):
+        """(F, 3, 3) the gradients covered target triangles ids (F,) are given in expressions
+        (F,) of the block: their images' (a straddling one's replacement), or their pairs'
+        weighted mean."""
+        goals = np.empty((len(ids), 3, 3))
+        mapped_index = np.full(len(self.covered), -1)
+        mapped_index[self.mapped_ids] = np.arange(len(self.mapped_ids))
+        mapped = mapped_index[ids] >= 0
+        goals[mapped] = self._image_gradients(mapped_index[ids[mapped]], expression[mapped], moves)
+        straddle_ids, straddle_expression, wanted = straddled
+        key = mapped_index[ids] * len(deltas) + expression
+        straddle_key = straddle_ids * len(deltas) + straddle_expression
+        replaced = mapped & np.isin(key, straddle_key)
+        order = np.argsort(straddle_key)
+        goals[replaced] = wanted[order[np.searchsorted(straddle_key[order], key[replaced])]]
+        paired = ~mapped
+        if paired.any():
+            rows = self.pair_mean[self.paired_row[ids[paired]]]
+            used = np.unique(rows.indices)
+            gradients = deformation.full_gradients(self.source_rest, self.source_rest + deltas,
+                                                   self.used_source_triangles[used])  # (B, U, 3, 3)
+            rows = rows[:, used]
+            pair_expression = expression[paired]
+            means = np.empty((len(pair_expression), 9))
+            for e in np.unique(pair_expression):
+                these = pair_expression == e
+                means[these] = rows[these] @ gradients[e].reshape(len(used), 9)
+            goals[paired] = means.reshape(-1, 3, 3)
+        return goals
 
     def _image_offsets(self, moves, b):
         """(m, 3B) the 4th-vertex offsets of the mapped triangles' deformed images, and (m, B)
@@ -397,6 +582,16 @@ def _largest_stretch(rest, deformed):
         determinant = (d11 * d22 - d12 * d12) / area
         largest = half_trace + np.sqrt(np.maximum(half_trace * half_trace - determinant, 0.0))
     return np.where(area > 1e-12 * r11 * r22, np.sqrt(np.maximum(largest, 0.0)), 0.0)
+
+
+def _singular_values_capped(gradients, cap):
+    """gradients (F, 3, 3) with their singular values capped at `cap` (their rotations kept);
+    those within it exactly as they are."""
+    left, values, right = np.linalg.svd(gradients)
+    over = values.max(axis=1, initial=0.0) > cap
+    capped = gradients.copy()
+    capped[over] = (left[over] * np.minimum(values[over], cap)[:, None, :]) @ right[over]
+    return capped
 
 
 def _barycentric_sampling(vertex_map, source_triangles, ids, n_target, n_source):
