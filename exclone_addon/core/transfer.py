@@ -467,11 +467,10 @@ class CorrespondedTransfer:
         mapped_index[self.mapped_ids] = np.arange(len(self.mapped_ids))
         rows = np.unique(mapped_index[triangles][mapped_index[triangles] >= 0])
         b = len(deltas)
-        images = [(edge[rows] @ moves).reshape(-1, 3, b) + rest[rows, :, None]
-                  for edge, rest in zip(self.image_edges, self.rest_image_edges)]
+        images = self._images(_coordinate_first(moves, b), rows)
         stretch = np.zeros((len(self.mapped_ids), b))
         stretch[rows] = _largest_stretch(self.rest_image_gram[:, rows, None],
-                                         _gram(*images, axis=1))
+                                         _gram(*images, axis=0))
         return self._straddling(deltas, moves, stretch)[:3]
 
     def _check(self, out, deltas, ids, passing, worst):
@@ -523,8 +522,9 @@ class CorrespondedTransfer:
         if paired.any():
             rows = self.pair_mean[self.paired_row[ids[paired]]]
             used = np.unique(rows.indices)
-            gradients = deformation.full_gradients(self.source_rest, self.source_rest + deltas,
-                                                   self.used_source_triangles[used])  # (B, U, 3, 3)
+            gradients = deformation.deformed_gradients(                         # (B, U, 3, 3)
+                self.used_source_inverses[used],
+                (self.source_rest + deltas)[:, self.used_source_triangles[used]])
             rows = rows[:, used]
             pair_expression = expression[paired]
             means = np.empty((len(pair_expression), 9))
@@ -540,25 +540,35 @@ class CorrespondedTransfer:
         m = len(self.mapped_ids)
         offsets = np.empty((m, 3, b))
         stretch = np.empty((m, b))
-        # coordinate first (3, n, B): the images' edges, the cross product and the Gram entries
-        # below all run on contiguous (triangles, B) arrays, one per coordinate
-        moves = np.ascontiguousarray(moves.reshape(len(moves), 3, b).transpose(1, 0, 2))
-        first, second, third = self.image_corners
+        moves = _coordinate_first(moves, b)
         # a few thousand triangles at a time: the cross product's temporaries stay in cache, and
         # the images' edges are made for those alone (all of them, (m, 3B) twice, were the
         # largest arrays of a block)
         for rows in blocks(m, TRIANGLES_PER_CHUNK):
-            # np.take: several times faster than fancy indexing on a middle axis
-            origin = np.take(moves, first[rows], axis=1)
-            images = []
-            for ends, rest in zip((second, third), self.rest_image_edges):
-                edges = np.take(moves, ends[rows], axis=1) - origin
-                edges += rest[:, rows, None]
-                images.append(edges)
+            images = self._images(moves, rows)
             offsets[rows] = np.moveaxis(deformation.fourth_offsets(*images, axis=0), 0, 1)
             stretch[rows] = _largest_stretch(self.rest_image_gram[:, rows, None],
                                              _gram(*images, axis=0))
         return offsets.reshape(m, 3 * b), stretch
+
+    def _images(self, moves, rows):
+        """The two deformed edges (3, r, B) of the mapped triangles rows' images, from the
+        sampled moves coordinate first (3, n, B: _coordinate_first)."""
+        first, second, third = self.image_corners
+        # np.take: several times faster than fancy indexing on a middle axis
+        origin = np.take(moves, first[rows], axis=1)
+        images = []
+        for ends, rest in zip((second, third), self.rest_image_edges):
+            edges = np.take(moves, ends[rows], axis=1) - origin
+            edges += rest[:, rows, None]
+            images.append(edges)
+        return images
+
+
+def _coordinate_first(moves, b):
+    """(n, 3B) moves as (3, n, B): the images' edges, the cross product and the Gram entries
+    made from them all run on contiguous (triangles, B) arrays, one per coordinate."""
+    return np.ascontiguousarray(moves.reshape(len(moves), 3, b).transpose(1, 0, 2))
 
 
 def _gram(first, second, axis=-1):
