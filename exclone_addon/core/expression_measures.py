@@ -487,8 +487,7 @@ class _Shape:
 
     def __init__(self, vertices, triangles, solved_vertices):
         self.vertices, self.triangles = vertices, triangles
-        self.edges = np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1),
-                               axis=0)
+        self.edges = mesh.unique_edges(triangles)
         self.rest_lengths = self._lengths(vertices)
         self.rest_normals = mesh.triangle_normals(vertices, triangles)
         outside = np.ones(len(vertices), dtype=bool)

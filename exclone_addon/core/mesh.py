@@ -332,14 +332,21 @@ def vertex_parts(n_vertices, triangles):
     return labels
 
 
-def boundary_edges(triangles):
-    """Edges (k, 2) used by exactly one triangle: the open borders."""
+def unique_edges(triangles, times=None):
+    """The triangles' edges (k, 2), each once, lower corner first, in np.unique(axis=0)'s order;
+    times: only the edges used by that many triangles (1: the open borders)."""
     edges = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1).astype(np.int64)
     size = int(edges.max()) + 1 if len(edges) else 1
     # one integer per edge (row-major, so the order is np.unique(axis=0)'s, several times faster)
     keys, counts = np.unique(edges[:, 0] * size + edges[:, 1], return_counts=True)
-    single = keys[counts == 1]
-    return np.stack([single // size, single % size], axis=1).astype(triangles.dtype)
+    if times is not None:
+        keys = keys[counts == times]
+    return np.stack([keys // size, keys % size], axis=1).astype(triangles.dtype)
+
+
+def boundary_edges(triangles):
+    """Edges (k, 2) used by exactly one triangle: the open borders."""
+    return unique_edges(triangles, times=1)
 
 
 def boundary_vertices(triangles):
