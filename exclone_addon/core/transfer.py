@@ -99,6 +99,8 @@ def _no_unique_solution():
 EXPRESSIONS_PER_BLOCK = 8
 # Mapped triangles whose images' 4th vertices are made together (memory-bound elementwise work)
 TRIANGLES_PER_CHUNK = 8192
+# Target edges whose stretch (STRETCH_BOUND) is measured together, for the same reason
+EDGES_PER_CHUNK = 8192
 # A mapped triangle's image may stretch (its largest stretch within its plane, per expression)
 # at most this many times as far as the most stretched source triangle under its corners (or
 # 1): beyond, its corners' images lie on two sides of an opening that parts (the lips at a mouth
@@ -360,12 +362,16 @@ class CorrespondedTransfer:
         wanted = deformation.corner_gradients(rest_sources, sources).mean(axis=1)
         return ids, expression, wanted, self._image_gradients(ids, expression, moves)
 
-    def _image_gradients(self, ids, expression, moves):
+    def _image_gradients(self, ids, expression, moves, inverses=None):
         """(F, 3, 3) the gradients of the images of mapped triangles ids (F,) (among the mapped)
-        in expressions (F,) of the block whose moves at the target vertices are moves (n, 3B)."""
+        in expressions (F,) of the block whose moves at the target vertices are moves (n, 3B);
+        inverses: their rest images' deformation.corner_inverses (F, 3, 3), if made already."""
         corners = self.system.triangles[self.mapped_ids[ids]]                    # (F, 3)
-        return deformation.corner_gradients(
-            self.rest_at[corners], self.rest_at[corners] + as_rows(moves)[expression[:, None], corners])
+        rest = self.rest_at[corners]
+        if inverses is None:
+            inverses = deformation.corner_inverses(rest)
+        return deformation.deformed_gradients(
+            inverses, rest + as_rows(moves)[expression[:, None], corners])
 
     def _goals_changed(self, rhs, triangle_ids, expression, change_gradients, b):
         """rhs (N, 3B) with the goals of target triangles triangle_ids (F,) in expressions
@@ -384,29 +390,38 @@ class CorrespondedTransfer:
         rhs[unknowns] += own[:, unknowns].T @ change
 
     def _bound_checks(self, source_triangles, vertex_map, weights):
-        """What STRETCH_BOUND needs: the target's edges with an image at both ends as sparse
-        differences of the target's vertices and of the source's (through the vertex map's
-        closest points, valid or not, as expression_measures reads them), their rest vectors,
-        and which triangles hold each vertex."""
+        """What STRETCH_BOUND needs: the target's edges with an image at both ends (their ends'
+        ids) and their images as sparse differences of the source's vertices (through the
+        vertex map's closest points, valid or not, as expression_measures reads them), their
+        rest vectors and lengths, and which triangles hold each vertex."""
         triangles = self.system.triangles
         imaged = np.flatnonzero(vertex_map.triangle >= 0)
         image_sampling = _barycentric_sampling(vertex_map, source_triangles, imaged,
                                                self.system.n, len(self.source_rest))
         has_image = np.zeros(self.system.n, dtype=bool)
         has_image[imaged] = True
-        edges = np.unique(np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1), axis=0)
+        n = self.system.n
+        ends = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+        # one key per edge: a flat np.unique, in the same (lower, higher) order as by rows, at a
+        # tenth of the cost
+        keys = np.unique(ends[:, 0] * np.int64(n) + ends[:, 1])
+        edges = np.stack([keys // n, keys % n], axis=1)
         self.bound_edges = edges[has_image[edges].all(axis=1)]
+        self.bound_ends = np.ascontiguousarray(self.bound_edges.T)       # (lower, higher) ids
         k = len(self.bound_edges)
-        self.edge_difference = sp.csr_matrix(
+        edge_difference = sp.csr_matrix(
             (np.tile([-1.0, 1.0], k), (np.repeat(np.arange(k), 2), self.bound_edges.ravel())),
-            shape=(k, self.system.n))
-        self.image_edge_difference = (self.edge_difference @ image_sampling).tocsr()
-        self.rest_edges = self.edge_difference @ self.system.rest_vertices            # (k, 3)
+            shape=(k, n))
+        self.image_edge_difference = (edge_difference @ image_sampling).tocsr()
+        self.rest_edges = edge_difference @ self.system.rest_vertices                 # (k, 3)
+        self.rest_lengths = np.linalg.norm(self.rest_edges, axis=1)
         self.image_rest_edges = self.image_edge_difference @ self.source_rest         # (k, 3)
         t = len(triangles)
         self.vertex_triangles = sp.csr_matrix(
             (np.ones(3 * t), (triangles.ravel(), np.repeat(np.arange(t), 3))), shape=(self.system.n, t))
         self.covered = np.asarray(weights) > 0
+        self.mapped_index = np.full(t, -1)             # each target triangle's row among the mapped
+        self.mapped_index[self.mapped_ids] = np.arange(len(self.mapped_ids))
 
     def _stretch_bounded(self, out, deltas):
         """out (E, n, 3), the displacements of source deltas (E, n_s, 3), with the goals around
@@ -427,9 +442,14 @@ class CorrespondedTransfer:
             around = (self.vertex_triangles.T @ region.astype(np.float64)) > 0       # (T,)
             added = np.flatnonzero(around & ~capped & self.covered)
             capped |= around
+            # the added triangles' rest images' inverses, made once for every block
+            inverses = np.zeros((len(added), 3, 3))
+            mapped = self.mapped_index[added] >= 0
+            inverses[mapped] = deformation.corner_inverses(
+                self.rest_at[self.system.triangles[added[mapped]]])
             changed = []
             for block in blocks(len(deltas)):
-                which, change = self._capping_change(deltas[block], added)
+                which, change = self._capping_change(deltas[block], added, inverses)
                 out[block][which] += change
                 changed.append(np.arange(len(deltas))[block][which])
             self._check(out, deltas, np.concatenate(changed), passing, worst)
@@ -438,17 +458,18 @@ class CorrespondedTransfer:
                 break
             region = (self.vertex_triangles @ around.astype(np.float64)) > 0
 
-    def _capping_change(self, deltas, ids):
+    def _capping_change(self, deltas, ids, inverses):
         """((B',) the expressions of the block (deltas (B, n_s, 3)) whose goals on the covered
         target triangles ids stretch more than STRETCH_BOUND, (B', n, 3) what capping them
-        (their rotations kept) changes in those expressions' displacements). The solve is
+        (their rotations kept) changes in those expressions' displacements). inverses (F, 3, 3):
+        the triangles' rest images' corner_inverses (zeros where not mapped). The solve is
         linear in its right-hand side and the parts' translations in the displacements, so the
         change is solved alone."""
         b = len(deltas)
         moves = self.sampling @ as_columns(deltas)                             # (n, 3B)
         triangles, expression = np.repeat(ids, b), np.tile(np.arange(b), len(ids))
         goals = self._goals(triangles, expression, deltas, moves, self._straddling_among(
-            triangles, deltas, moves))
+            triangles, deltas, moves), np.repeat(inverses, b, axis=0))
         capped = _singular_values_capped(goals, STRETCH_BOUND)
         changed = np.abs(capped - goals).max(axis=(1, 2), initial=0.0) > 0
         which = np.unique(expression[changed])
@@ -463,9 +484,8 @@ class CorrespondedTransfer:
 
     def _straddling_among(self, triangles, deltas, moves):
         """_straddling's first three of the mapped ones among target triangles (F,)."""
-        mapped_index = np.full(len(self.covered), -1)
-        mapped_index[self.mapped_ids] = np.arange(len(self.mapped_ids))
-        rows = np.unique(mapped_index[triangles][mapped_index[triangles] >= 0])
+        rows = self.mapped_index[triangles]
+        rows = np.unique(rows[rows >= 0])
         b = len(deltas)
         images = self._images(_coordinate_first(moves, b), rows)
         stretch = np.zeros((len(self.mapped_ids), b))
@@ -485,33 +505,48 @@ class CorrespondedTransfer:
         STRETCH_BOUND beyond their images under the source's deltas (B, n_s, 3), and each
         expression's worst excess stretch (1 where no edge stretches past the bound)."""
         b = len(deltas)
-
-        def lengths(rest, moved):                  # (k, B) from the edges' moves (k, 3B)
-            return np.sqrt(sum((moved[:, axis * b:(axis + 1) * b] + rest[:, axis, None]) ** 2
-                               for axis in range(3)))
-        rest = np.linalg.norm(self.rest_edges, axis=1)
-        stretched = lengths(self.rest_edges, self.edge_difference @ as_columns(displacements))
-        # the image's stretch counts from 1, so only an edge stretched past the bound can pass
-        edges = np.flatnonzero((stretched > STRETCH_BOUND * rest[:, None]).any(axis=1))
+        rest = self.rest_lengths
+        # the edges' moves taken coordinate first (as _images), a few thousand edges at a time
+        # so that their temporaries stay in cache: several times faster than a sparse
+        # difference of all of them
+        moves = np.ascontiguousarray(np.transpose(displacements, (2, 1, 0)))      # (3, n, B)
+        lower, higher = self.bound_ends
+        # an edge grows by at most its ends' moves: only where those (the block's largest) reach
+        # STRETCH_BOUND - 1 rest lengths (less a margin far beyond rounding) can it stretch past
+        reach = np.sqrt(components_dot(moves, moves)).max(axis=1)                   # (n,)
+        near = np.flatnonzero(reach[lower] + reach[higher] >
+                              (STRETCH_BOUND - 1) * (1 - 1e-9) * rest)
+        edges, stretched = [np.zeros(0, dtype=np.int64)], [np.zeros((0, b))]
+        for rows in blocks(len(near), EDGES_PER_CHUNK):
+            ids = near[rows]
+            lengths = _lengths(self.rest_edges[ids], (np.take(coordinate, higher[ids], axis=0) -
+                                                     np.take(coordinate, lower[ids], axis=0)
+                                                     for coordinate in moves))
+            # the image's stretch counts from 1, so only an edge stretched past the bound can pass
+            past = np.flatnonzero((lengths > STRETCH_BOUND * rest[ids, None]).any(axis=1))
+            edges.append(ids[past])
+            stretched.append(lengths[past])
+        edges = np.concatenate(edges)
         excess = excess_stretches(
-            rest[edges, None], stretched[edges],
+            rest[edges, None], np.concatenate(stretched),
             np.linalg.norm(self.image_rest_edges[edges], axis=1)[:, None],
-            lengths(self.image_rest_edges[edges],
-                    self.image_edge_difference[edges] @ as_columns(deltas)))
+            _lengths(self.image_rest_edges[edges],
+                     (self.image_edge_difference[edges] @ as_columns(deltas)).reshape(
+                         len(edges), 3, b).transpose(1, 0, 2)))
         passing = np.zeros((b, self.system.n), dtype=bool)
         edge, expression = np.nonzero(excess > STRETCH_BOUND)
         passing[np.repeat(expression, 2), self.bound_edges[edges[edge]].ravel()] = True
         return passing, excess.max(axis=0, initial=1.0)
 
-    def _goals(self, ids, expression, deltas, moves, straddled):
+    def _goals(self, ids, expression, deltas, moves, straddled, inverses):
         """(F, 3, 3) the gradients covered target triangles ids (F,) are given in expressions
         (F,) of the block: their images' (a straddling one's replacement), or their pairs'
-        weighted mean."""
+        weighted mean. inverses (F, 3, 3): the mapped ones' rest images' corner_inverses."""
         goals = np.empty((len(ids), 3, 3))
-        mapped_index = np.full(len(self.covered), -1)
-        mapped_index[self.mapped_ids] = np.arange(len(self.mapped_ids))
+        mapped_index = self.mapped_index
         mapped = mapped_index[ids] >= 0
-        goals[mapped] = self._image_gradients(mapped_index[ids[mapped]], expression[mapped], moves)
+        goals[mapped] = self._image_gradients(mapped_index[ids[mapped]], expression[mapped], moves,
+                                              inverses[mapped])
         straddle_ids, straddle_expression, wanted = straddled
         key = mapped_index[ids] * len(deltas) + expression
         straddle_key = straddle_ids * len(deltas) + straddle_expression
@@ -571,6 +606,20 @@ def _coordinate_first(moves, b):
     return np.ascontiguousarray(moves.reshape(len(moves), 3, b).transpose(1, 0, 2))
 
 
+def _lengths(rest, moved):
+    """(k, B) the lengths of edges (k, 3) at rest plus their moves (k, B) per coordinate (3 of
+    them, changed in place: they are made for this)."""
+    squared = None
+    for axis, move in enumerate(moved):
+        move += rest[:, axis, None]
+        move *= move
+        if squared is None:
+            squared = move
+        else:
+            squared += move
+    return np.sqrt(squared, out=squared)
+
+
 def _gram(first, second, axis=-1):
     """(3, ...) the Gram matrices' entries (e1.e1, e1.e2, e2.e2) of edge pairs (xyz along axis)."""
     first, second = np.moveaxis(first, axis, 0), np.moveaxis(second, axis, 0)
@@ -597,10 +646,13 @@ def _largest_stretch(rest, deformed):
 def _singular_values_capped(gradients, cap):
     """gradients (F, 3, 3) with their singular values capped at `cap` (their rotations kept);
     those within it exactly as they are."""
-    left, values, right = np.linalg.svd(gradients)
-    over = values.max(axis=1, initial=0.0) > cap
     capped = gradients.copy()
-    capped[over] = (left[over] * np.minimum(values[over], cap)[:, None, :]) @ right[over]
+    # the largest singular value is at most the Frobenius norm: only gradients whose norm
+    # passes the cap (less a margin far beyond rounding) are decomposed
+    near = np.flatnonzero(np.einsum("fij,fij->f", gradients, gradients) > cap * cap * (1 - 1e-6))
+    left, values, right = np.linalg.svd(gradients[near])
+    over = values.max(axis=1, initial=0.0) > cap
+    capped[near[over]] = (left[over] * np.minimum(values[over], cap)[:, None, :]) @ right[over]
     return capped
 
 
