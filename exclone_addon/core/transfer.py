@@ -41,7 +41,7 @@ except ImportError:     # an install without the bundled wheel: SuperLU serves a
 from . import deformation
 from .expression_measures import excess_stretches
 from .errors import ExCloneError
-from .mesh import vertex_parts
+from .mesh import unique_edges, vertex_parts
 from .proximity import components_dot
 
 
@@ -401,11 +401,7 @@ class CorrespondedTransfer:
         has_image = np.zeros(self.system.n, dtype=bool)
         has_image[imaged] = True
         n = self.system.n
-        ends = np.sort(triangles[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-        # one key per edge: a flat np.unique, in the same (lower, higher) order as by rows, at a
-        # tenth of the cost
-        keys = np.unique(ends[:, 0] * np.int64(n) + ends[:, 1])
-        edges = np.stack([keys // n, keys % n], axis=1)
+        edges = unique_edges(triangles)
         self.bound_edges = edges[has_image[edges].all(axis=1)]
         self.bound_ends = np.ascontiguousarray(self.bound_edges.T)       # (lower, higher) ids
         k = len(self.bound_edges)
