@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from . import face_render
 from .errors import ExCloneError
-from .mesh import PolyMesh, vertex_parts, welded
+from .mesh import PolyMesh, unique_edges, vertex_parts, welded
 from .surface import Surface
 
 EYE, SKIN, MOUTH, STILL = "eye", "skin", "mouth", "still"
@@ -579,8 +579,7 @@ def _along_surface(points, triangles, ids):
 
 def _edges(local, triangles):
     """((k, 2) the triangles' edges, once each; (k,) their lengths)."""
-    edges = np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]])
-    edges = np.unique(np.sort(edges, axis=1), axis=0)
+    edges = unique_edges(triangles)
     return edges, np.linalg.norm(local[edges[:, 0]] - local[edges[:, 1]], axis=1)
 
 
