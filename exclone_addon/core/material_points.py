@@ -15,8 +15,11 @@ Tracked from frame to frame they drift as the head turns (on the rendered takes 
 about 0.9 of a frame's motion where the light stays with the camera: 3-4 px off after a second
 of turning, 1.5 px even against the neutral frame warped by the true motion), so after each
 frame every point is pulled a share of the way to where FaceMesh's fit puts it: FaceMesh holds
-what stays, the flow adds what changes quickly. The head pose stays FaceMesh's fit's (with the
-material points in the pose the rotation's error grew from 1.6 to 1.8-2.7 deg median).
+what stays, the flow adds what changes quickly. The share grows with how far the head's motion
+moved the point since the frame before (the flow's error grows with it): with the head still
+the flow keeps the expressions FaceMesh follows only part of the way. The head pose stays
+FaceMesh's fit's (with the material points in the pose the rotation's error grew from 1.6 to
+1.8-2.7 deg median).
 
 Where FaceMesh's fit puts a point is not where its texture goes as the head turns: on the
 rendered turning take (a neutral face) the points' true projections lie 2.0 px median from it
@@ -46,9 +49,15 @@ MAX_POINTS = 150
 MIN_FACING = 0.5
 # A tracked point counts only when tracking it back lands within this of where it started.
 FORWARD_BACKWARD_PX = 0.7
-# After each frame each point moves this share of the way to FaceMesh's fit (of 0.1, 0.2, 0.3 on
-# the rendered takes: 0.2 best kept a turning neutral face at rest).
-PULL = 0.2
+# After each frame each point moves part of the way to FaceMesh's fit: this share per pixel the
+# head's motion (the fit's pose against the frame before's) moved it, at most PULL_MAX. The flow's
+# error grows with the motion it follows (on the rendered turning take, tracked from the true
+# points, 0.17 px median a frame at 0.37 px of motion, reading 0.91 of it; 0.006 px with the head
+# still), and what the pull takes back of it, it takes of the expressions too (FaceMesh follows
+# the brows, frowns and pucker 0.2-0.5 of the way): a fixed share of 0.2 cost the head-still take
+# 0.64 against 0.75 of correlation with none (docs/method.md §11).
+PULL_PER_PX = 0.3
+PULL_MAX = 0.3
 # A material point's weight in the fit against one of FaceMesh's (their noise is a fraction of
 # FaceMesh's; fewer of them).
 WEIGHT = 20.0
@@ -106,6 +115,7 @@ class MaterialPoints:
         self._depth_normal = np.zeros(len(self.indices))
         self._depth_moment = np.zeros(len(self.indices))
         self.depth = np.zeros(len(self.indices))     # cm along the ray from the located point
+        self._pose = None            # the frame before's fit's pose (rotation, translation)
 
     def track(self, gray):
         """(m, 2) the material points in this frame (NaN where not found or not trusted). Sets
@@ -147,7 +157,8 @@ class MaterialPoints:
         is not an expression. Each point's depth along its calibration ray is then refined by
         its residuals (least squares over the take against DEPTH_PRIOR): a depth error moves a
         point only as the head turns away from calibration's pose, which the shape would read
-        as expression. The points then move PULL of the way to where `fit` puts them."""
+        as expression. The points then move part of the way to where `fit` puts them: PULL_PER_PX
+        per pixel the head's motion since the frame before moved each (at most PULL_MAX)."""
         rotation, matrix = fit.rotation, fit.rotation.as_matrix()
         modes = self._modes
         material = self.located + self.depth[:, None] * self._ray + modes @ fit.params
@@ -183,6 +194,11 @@ class MaterialPoints:
             self._depth_normal[valid] += trust * np.einsum("ij,ij->i", slope, slope)
             self._depth_moment[valid] += trust * np.einsum("ij,ij->i", slope, from_located)
             self.depth = self._depth_moment / (self._depth_normal + DEPTH_PRIOR)
-        self.points = np.where(valid[:, None], tracked + PULL * (anchor - tracked),
+        pull = np.zeros(len(anchor))
+        if self._pose is not None:
+            before = self._camera.project(self._pose[0].apply(material) + self._pose[1])
+            pull = np.minimum(PULL_PER_PX * np.linalg.norm(anchor - before, axis=1), PULL_MAX)
+        self._pose = (rotation, fit.translation)
+        self.points = np.where(valid[:, None], tracked + pull[:, None] * (anchor - tracked),
                                 anchor).astype(np.float32)
         return replace(fit, params=params, shape=self._model.shape(params))
