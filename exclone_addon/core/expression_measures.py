@@ -502,8 +502,7 @@ class _Shape:
         moved = self.vertices + delta
         usable = self.rest_lengths > 0
         stretch = self._lengths(moved)[usable] / self.rest_lengths[usable]
-        normals = mesh.triangle_normals(moved, self.triangles)
-        flipped = np.einsum("ij,ij->i", normals, self.rest_normals) < 0
+        flipped = turned_over(self.rest_normals, mesh.triangle_normals(moved, self.triangles))
         outside = np.linalg.norm(delta[self.outside], axis=1).max(initial=0.0)
         return {"edge_stretch": float(stretch.max(initial=1.0)),
                 "flipped_triangles": int(flipped.sum()),
@@ -535,6 +534,13 @@ def excess_stretches(rest, deformed, image_rest, image_deformed):
     # an edge the source shortens and the clone keeps is not stretched: the source's stretch
     # counts from 1
     return np.where(usable, (deformed / rest) / np.maximum(image_deformed / image_rest, 1.0), 0.0)
+
+
+def turned_over(rest_normals, normals):
+    """(...) bool: the triangles whose normals (..., 3) turned by more than 90 degrees from their
+    rest normals (..., 3): a flipped triangle. Any lengths (the sign alone counts); a triangle
+    with no area at rest or moved is not flipped."""
+    return np.einsum("...i,...i->...", normals, rest_normals) < 0
 
 
 def measure_clone(target, result, names=None, deltas=None, source=None, source_deltas=None):
