@@ -11,9 +11,11 @@ after). Each frame tracks them from the previous frame (forward-backward checked
 its own while FaceMesh runs) and refits FaceMesh's fit's shape parameters to them too, at its
 pose: those parameters drive the weights.
 
-Tracked from frame to frame they drift as the head turns (on the rendered takes the flow reads
-about 0.9 of a frame's motion where the light stays with the camera: 3-4 px off after a second
-of turning, 1.5 px even against the neutral frame warped by the true motion), so after each
+The flow follows the frames less their blur: the shading, which stays with the light as the
+head turns, would hold the points back. Tracked from frame to frame they still drift as the head
+turns (on the rendered takes the flow reads about 0.92 of a frame's motion where the light stays
+with the camera, 0.86 on the frames themselves: 1.4 px off after half a second of turning; 1.5 px
+even against the neutral frame warped by the true motion), so after each
 frame every point is pulled a share of the way to where FaceMesh's fit puts it: FaceMesh holds
 what stays, the flow adds what changes quickly. The share grows with how far the head's motion
 moved the point since the frame before (the flow's error grows with it): with the head still
@@ -52,11 +54,12 @@ FORWARD_BACKWARD_PX = 0.7
 # After each frame each point moves part of the way to FaceMesh's fit: this share per pixel the
 # head's motion (the fit's pose against the frame before's) moved it, at most PULL_MAX. The flow's
 # error grows with the motion it follows (on the rendered turning take, tracked from the true
-# points, 0.17 px median a frame at 0.37 px of motion, reading 0.91 of it; 0.006 px with the head
+# points, 0.16 px median a frame at 0.37 px of motion, reading 0.92 of it; 0.006 px with the head
 # still), and what the pull takes back of it, it takes of the expressions too (FaceMesh follows
 # the brows, frowns and pucker 0.2-0.5 of the way): a fixed share of 0.2 cost the head-still take
-# 0.64 against 0.75 of correlation with none (docs/method.md §11).
-PULL_PER_PX = 0.3
+# 0.64 against 0.75 of correlation with none. With the shading in the flow's frames 0.3 per pixel
+# held its drift best (docs/method.md §11).
+PULL_PER_PX = 0.25
 PULL_MAX = 0.3
 # A material point's weight in the fit against one of FaceMesh's (their noise is a fraction of
 # FaceMesh's; fewer of them).
@@ -65,6 +68,13 @@ WEIGHT = 20.0
 # pixels a frame; the flow's 11-pixel window at its coarsest level, a quarter of the size, spans
 # about 20).
 CROP_MARGIN_PX = 32
+# The flow follows each frame less its blur over this many pixels: the shading, which stays where
+# the light is as the head turns, is out of it and the painted and modelled detail in (on the
+# rendered turning take the flow then reads 0.92 of a frame's motion, not 0.86, and drifts 1.39 px
+# median over 15 frames, not 1.58). The detail is scaled by SHADING_GAIN into 8 bits (the flow
+# takes 8-bit frames; the strongest edges clip).
+SHADING_SIGMA_PX = 5.0
+SHADING_GAIN = 4.0
 LUCAS_KANADE = dict(winSize=(11, 11), maxLevel=2,
                     criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
 # The face's motion from the frame before (MaterialPoints.motion), and the points' own turn and
@@ -76,6 +86,15 @@ MIN_MOTION_POINTS = 10
 # median absolute deviation). At 50 cm a 10 deg turn moves a point 2.2 px per cm of depth, so the
 # prior weighs about two such frames.
 DEPTH_PRIOR = (1.0 / 0.3) ** 2
+
+
+def without_shading(gray):
+    """8-bit `gray` less its Gaussian blur (SHADING_SIGMA_PX), scaled by SHADING_GAIN about 128:
+    the image the flow follows."""
+    # in 16 bits at 16 steps a grey level (half the time of float32; the blur keeps its fraction)
+    image = gray.astype(np.int16) * np.int16(16)
+    return cv2.addWeighted(image, SHADING_GAIN / 16, cv2.GaussianBlur(image, (0, 0), SHADING_SIGMA_PX),
+                           -SHADING_GAIN / 16, 128.0, dtype=cv2.CV_8U)
 
 
 class MaterialPoints:
@@ -130,7 +149,7 @@ class MaterialPoints:
             high = np.minimum(np.ceil(self.points.max(axis=0)) + CROP_MARGIN_PX,
                               [width, height]).astype(int)
             crop = np.s_[low[1]:high[1], low[0]:high[0]]
-            before, now = self._gray[crop], gray[crop]
+            before, now = without_shading(self._gray[crop]), without_shading(gray[crop])
             start = self.points - low.astype(np.float32)
             ahead, found, _ = cv2.calcOpticalFlowPyrLK(before, now, start, None, **LUCAS_KANADE)
             back, found_back, _ = cv2.calcOpticalFlowPyrLK(now, before, ahead, None, **LUCAS_KANADE)
