@@ -358,7 +358,8 @@ class CorrespondedTransfer:
         corners (F, 3, 3), which they take instead of their images' own (F, 3, 3)); stretch
         (m, B): the images' own."""
         ids, expression = np.nonzero(stretch > STRADDLE)       # the limit is at least STRADDLE
-        ids, expression, wanted = self._straddlers(ids, expression, stretch[ids, expression], deltas)
+        ids, expression, wanted = self._straddlers(ids, expression, stretch[ids, expression],
+                                                   deltas)
         return ids, expression, wanted, self._image_gradients(ids, expression, moves)
 
     def _straddlers(self, ids, expression, stretch, deltas):
@@ -460,8 +461,11 @@ class CorrespondedTransfer:
             triangles, expression, change = self._capping_changes(deltas, added, share)
             for bound, block in zip(longest, blocks(len(deltas))):
                 these = (expression >= block.start) & (expression < block.stop)
-                which, solved = self._solved_change(triangles[these], expression[these] - block.start,
-                                                    change[these], block.stop - block.start)
+                if not these.any():
+                    continue
+                which, solved = self._solved_change(
+                    triangles[these], expression[these] - block.start, change[these],
+                    block.stop - block.start)
                 out[block][which] += solved
                 grown = np.zeros(self.system.n)        # each vertex's largest change
                 for moved in solved:
@@ -499,13 +503,11 @@ class CorrespondedTransfer:
         return triangles[changed], expression[changed], share * (capped - goals)[changed]
 
     def _solved_change(self, triangles, expression, change, b):
-        """((B',) the expressions of a block of b whose goals on target triangles (C,) change
-        by change (C, 3, 3) in expressions (C,) of the block, (B', n, 3) what that changes in
-        their displacements). The solve is linear in its right-hand side and the parts'
+        """((B',) the expressions of a block of b whose goals on target triangles (C,), C > 0,
+        change by change (C, 3, 3) in expressions (C,) of the block, (B', n, 3) what that changes
+        in their displacements). The solve is linear in its right-hand side and the parts'
         translations in the displacements, so the change is solved alone."""
         which, expression = np.unique(expression, return_inverse=True)
-        if not len(which):
-            return which, np.zeros((0, self.system.n, 3))
         # the right-hand side of those expressions alone
         rhs = np.zeros((self.system.grad.shape[1], 3 * len(which)))
         self._goals_changed(rhs, triangles, expression, change, len(which))
@@ -529,14 +531,14 @@ class CorrespondedTransfer:
         every expression, in order, and longest is made; bounded: only the edges it lets pass
         STRETCH_BOUND (less a margin far beyond rounding) are measured."""
         for block in blocks(len(ids)):
-            chosen = ids[block]
+            chosen = ids[block] if bounded else block       # every expression: a view of each block
             edges = np.flatnonzero(
                 (longest[np.unique(chosen // EXPRESSIONS_PER_BLOCK)] >
                  STRETCH_BOUND * (1 - 1e-9) * self.rest_lengths).any(axis=0)) if bounded else None
             passing[chosen], worst[chosen], made = self._passing_vertices(
                 out[chosen], deltas[chosen], edges)
             if not bounded:
-                longest[chosen[0] // EXPRESSIONS_PER_BLOCK] = made
+                longest[block.start // EXPRESSIONS_PER_BLOCK] = made
 
     def _passing_vertices(self, displacements, deltas, edges=None):
         """((B, n) bool, (B,), (k,) or None): the ends of the edges displacements (B, n, 3)
@@ -556,9 +558,9 @@ class CorrespondedTransfer:
             # reach STRETCH_BOUND - 1 rest lengths (less a margin far beyond rounding) can it
             # stretch past
             reach = np.sqrt(_row_largest(components_dot(moves, moves)))             # (n,)
-            longest = rest + reach[lower] + reach[higher]
-            near = np.flatnonzero(reach[lower] + reach[higher] >
-                                  (STRETCH_BOUND - 1) * (1 - 1e-9) * rest)
+            reach = reach[lower] + reach[higher]                                     # (k,)
+            longest = rest + reach
+            near = np.flatnonzero(reach > (STRETCH_BOUND - 1) * (1 - 1e-9) * rest)
         else:
             longest, near = None, edges
         edges, stretched = [np.zeros(0, dtype=np.int64)], [np.zeros((0, b))]
