@@ -358,26 +358,34 @@ class CorrespondedTransfer:
         corners (F, 3, 3), which they take instead of their images' own (F, 3, 3)); stretch
         (m, B): the images' own."""
         ids, expression = np.nonzero(stretch > STRADDLE)       # the limit is at least STRADDLE
+        ids, expression, wanted = self._straddlers(ids, expression, stretch[ids, expression],
+                                                   deltas)
+        return ids, expression, wanted, self._image_gradients(ids, expression, moves)
+
+    def _straddlers(self, ids, expression, stretch, deltas):
+        """_straddling's first three among mapped triangles ids (F,) in expressions (F,) whose
+        images stretch (F,) more than STRADDLE."""
         rest_sources = self.source_rest[self.under[ids]]                         # (F, 3, 3, 3)
         sources = rest_sources + deltas[expression[:, None, None], self.under[ids]]
         under = _largest_stretch(_gram(*deformation.corner_edges(rest_sources)),
                                  _gram(*deformation.corner_edges(sources)))      # (F, 3)
-        straddling = stretch[ids, expression] > STRADDLE * np.maximum(under.max(axis=1), 1.0)
-        ids, expression = ids[straddling], expression[straddling]
+        straddling = stretch > STRADDLE * np.maximum(under.max(axis=1), 1.0)
         rest_sources, sources = rest_sources[straddling], sources[straddling]
         wanted = deformation.corner_gradients(rest_sources, sources).mean(axis=1)
-        return ids, expression, wanted, self._image_gradients(ids, expression, moves)
+        return ids[straddling], expression[straddling], wanted
 
-    def _image_gradients(self, ids, expression, moves, inverses=None):
+    def _image_gradients(self, ids, expression, moves, inverses=None, vertex_rows=None):
         """(F, 3, 3) the gradients of the images of mapped triangles ids (F,) (among the mapped)
         in expressions (F,) of the block whose moves at the target vertices are moves (n, 3B);
-        inverses: their rest images' deformation.corner_inverses (F, 3, 3), if made already."""
+        inverses: their rest images' deformation.corner_inverses (F, 3, 3), if made already;
+        vertex_rows (n,): each target vertex's row of moves, where moves are not all of them."""
         corners = self.system.triangles[self.mapped_ids[ids]]                    # (F, 3)
         rest = self.rest_at[corners]
         if inverses is None:
             inverses = deformation.corner_inverses(rest)
+        rows = corners if vertex_rows is None else vertex_rows[corners]
         return deformation.deformed_gradients(
-            inverses, rest + as_rows(moves)[expression[:, None], corners])
+            inverses, rest + as_rows(moves)[expression[:, None], rows])
 
     def _goals_changed(self, rhs, triangle_ids, expression, change_gradients, b):
         """rhs (N, 3B) with the goals of target triangles triangle_ids (F,) in expressions
@@ -417,6 +425,7 @@ class CorrespondedTransfer:
         self.image_edge_difference = (edge_difference @ image_sampling).tocsr()
         self.rest_edges = edge_difference @ self.system.rest_vertices                 # (k, 3)
         self.rest_lengths = np.linalg.norm(self.rest_edges, axis=1)
+        self.squared_bound_lengths = (STRETCH_BOUND * self.rest_lengths) ** 2 * (1 - 1e-9)
         self.image_rest_edges = self.image_edge_difference @ self.source_rest         # (k, 3)
         t = len(triangles)
         self.vertex_triangles = sp.csr_matrix(
@@ -433,7 +442,11 @@ class CorrespondedTransfer:
         round while the worst passing edge gives way, for at most BOUND_ROUNDS rounds."""
         passing = np.zeros((len(deltas), self.system.n), dtype=bool)
         worst = np.zeros(len(deltas))
-        self._check(out, deltas, np.arange(len(deltas)), passing, worst)
+        # a bound on each edge's length in each block's expressions, grown by what each round
+        # changes: the rounds' checks measure only the edges it lets pass STRETCH_BOUND
+        longest = np.zeros((len(blocks(len(deltas))), len(self.bound_edges)))
+        self._check(out, deltas, np.arange(len(deltas)), passing, worst, longest, False)
+        lower, higher = self.bound_ends
         share = min((worst.max(initial=1.0) - STRETCH_BOUND) / BOUND_FADE, 1.0)
         region = np.zeros(self.system.n, dtype=bool)
         capped = np.zeros(len(self.covered), dtype=bool)
@@ -445,89 +458,127 @@ class CorrespondedTransfer:
             around = (self.vertex_triangles.T @ region.astype(np.float64)) > 0       # (T,)
             added = np.flatnonzero(around & ~capped & self.covered)
             capped |= around
-            # the added triangles' rest images' inverses, made once for every block
-            inverses = np.zeros((len(added), 3, 3))
-            mapped = self.mapped_index[added] >= 0
-            inverses[mapped] = deformation.corner_inverses(
-                self.rest_at[self.system.triangles[added[mapped]]])
-            changed = []
-            for block in blocks(len(deltas)):
-                which, change = self._capping_change(deltas[block], added, inverses, share)
-                out[block][which] += change
-                changed.append(np.arange(len(deltas))[block][which])
-            self._check(out, deltas, np.concatenate(changed), passing, worst)
+            triangles, expression, change = self._capping_changes(deltas, added, share)
+            for bound, block in zip(longest, blocks(len(deltas))):
+                these = (expression >= block.start) & (expression < block.stop)
+                if not these.any():
+                    continue
+                which, solved = self._solved_change(
+                    triangles[these], expression[these] - block.start, change[these],
+                    block.stop - block.start)
+                out[block][which] += solved
+                grown = np.zeros(self.system.n)        # each vertex's largest change
+                for moved in solved:
+                    np.maximum(grown, np.sqrt(np.einsum("vi,vi->v", moved, moved)), out=grown)
+                bound += grown[lower] + grown[higher]    # an edge grows by at most its ends' moves
+            self._check(out, deltas, np.unique(expression), passing, worst, longest, True)
             # on while a passing expression's worst edge gives way, a ring of triangles further
             if not (worst < GIVING_WAY * was)[was > STRETCH_BOUND].any():
                 break
             region = (self.vertex_triangles @ around.astype(np.float64)) > 0
 
-    def _capping_change(self, deltas, ids, inverses, share):
-        """((B',) the expressions of the block (deltas (B, n_s, 3)) whose goals on the covered
-        target triangles ids stretch more than STRETCH_BOUND, (B', n, 3) what moving them the
-        share (0-1] of the way to their caps (their rotations kept) changes in those expressions'
-        displacements). inverses (F, 3, 3):
-        the triangles' rest images' corner_inverses (zeros where not mapped). The solve is
-        linear in its right-hand side and the parts' translations in the displacements, so the
-        change is solved alone."""
-        b = len(deltas)
-        moves = self.sampling @ as_columns(deltas)                             # (n, 3B)
-        triangles, expression = np.repeat(ids, b), np.tile(np.arange(b), len(ids))
+    def _capping_changes(self, deltas, ids, share):
+        """What moving the goals of covered target triangles ids (F,) the share (0-1] of the way
+        to their caps (their rotations kept) changes in them, where a goal stretches more than
+        STRETCH_BOUND in an expression of deltas (E, n_s, 3): (the triangles (C,), their
+        expressions (C,), the goals' changes (C, 3, 3)), triangle by triangle in the order of
+        ids, expression by expression within a triangle. Every expression at once, from the
+        source's moves sampled at the triangles' corners alone."""
+        mapped = self.mapped_index[ids] >= 0
+        corners = self.system.triangles[ids[mapped]]
+        inverses = np.zeros((len(ids), 3, 3))
+        inverses[mapped] = deformation.corner_inverses(self.rest_at[corners])
+        vertices = np.unique(corners)
+        vertex_rows = np.full(self.system.n, -1)
+        vertex_rows[vertices] = np.arange(len(vertices))
+        e = len(deltas)
+        sampling = self.sampling[vertices]
+        used = np.unique(sampling.indices)                  # the source vertices it reads
+        moves = sampling[:, used] @ as_columns(deltas[:, used])                 # (v, 3E)
+        triangles, expression = np.repeat(ids, e), np.tile(np.arange(e), len(ids))
         goals = self._goals(triangles, expression, deltas, moves, self._straddling_among(
-            triangles, deltas, moves), np.repeat(inverses, b, axis=0))
+            triangles, deltas, moves, vertex_rows), np.repeat(inverses, e, axis=0), vertex_rows)
         capped = _singular_values_capped(goals, STRETCH_BOUND)
         changed = np.abs(capped - goals).max(axis=(1, 2), initial=0.0) > 0
-        which = np.unique(expression[changed])
-        if not len(which):
-            return which, np.zeros((0, self.system.n, 3))
-        rhs = np.zeros((self.system.grad.shape[1], 3 * b))
-        self._goals_changed(rhs, triangles[changed], expression[changed],
-                            share * (capped - goals)[changed], b)
-        columns = (np.arange(3)[:, None] * b + which).ravel()
-        return which, as_rows(self.system.solved(
-            rhs[:, columns], np.zeros((len(self.anchors), len(columns))), self.anchors))
+        return triangles[changed], expression[changed], share * (capped - goals)[changed]
 
-    def _straddling_among(self, triangles, deltas, moves):
-        """_straddling's first three of the mapped ones among target triangles (F,)."""
+    def _solved_change(self, triangles, expression, change, b):
+        """((B',) the expressions of a block of b whose goals on target triangles (C,), C > 0,
+        change by change (C, 3, 3) in expressions (C,) of the block, (B', n, 3) what that changes
+        in their displacements). The solve is linear in its right-hand side and the parts'
+        translations in the displacements, so the change is solved alone."""
+        which, expression = np.unique(expression, return_inverse=True)
+        # the right-hand side of those expressions alone
+        rhs = np.zeros((self.system.grad.shape[1], 3 * len(which)))
+        self._goals_changed(rhs, triangles, expression, change, len(which))
+        return which, as_rows(self.system.solved(
+            rhs, np.zeros((len(self.anchors), 3 * len(which))), self.anchors))
+
+    def _straddling_among(self, triangles, deltas, moves, vertex_rows):
+        """_straddling's first three of the mapped ones among target triangles (F,); moves
+        (v, 3E) at the target vertices of vertex_rows (n,) (_capping_changes)."""
         rows = self.mapped_index[triangles]
         rows = np.unique(rows[rows >= 0])
-        b = len(deltas)
-        images = self._images(_coordinate_first(moves, b), rows)
-        stretch = np.zeros((len(self.mapped_ids), b))
-        stretch[rows] = _largest_stretch(self.rest_image_gram[:, rows, None],
-                                         _gram(*images, axis=0))
-        return self._straddling(deltas, moves, stretch)[:3]
+        images = self._images(_coordinate_first(moves, len(deltas)), rows, vertex_rows)
+        stretch = _largest_stretch(self.rest_image_gram[:, rows, None], _gram(*images, axis=0))
+        which, expression = np.nonzero(stretch > STRADDLE)
+        return self._straddlers(rows[which], expression, stretch[which, expression], deltas)
 
-    def _check(self, out, deltas, ids, passing, worst):
+    def _check(self, out, deltas, ids, passing, worst, longest, bounded):
         """passing (E, n) and worst (E,) of the expressions ids (_passing_vertices) updated from
-        their displacements out (E, n, 3) and source deltas (E, n_s, 3)."""
+        their displacements out (E, n, 3) and source deltas (E, n_s, 3). longest (blocks of E,
+        k): a bound on each edge's length in each block's expressions. Not bounded: ids are
+        every expression, in order, and longest is made; bounded: only the edges it lets pass
+        STRETCH_BOUND (less a margin far beyond rounding) are measured."""
         for block in blocks(len(ids)):
-            chosen = ids[block]
-            passing[chosen], worst[chosen] = self._passing_vertices(out[chosen], deltas[chosen])
+            chosen = ids[block] if bounded else block       # every expression: a view of each block
+            edges = np.flatnonzero(
+                (longest[np.unique(chosen // EXPRESSIONS_PER_BLOCK)] >
+                 STRETCH_BOUND * (1 - 1e-9) * self.rest_lengths).any(axis=0)) if bounded else None
+            passing[chosen], worst[chosen], made = self._passing_vertices(
+                out[chosen], deltas[chosen], edges)
+            if not bounded:
+                longest[block.start // EXPRESSIONS_PER_BLOCK] = made
 
-    def _passing_vertices(self, displacements, deltas):
-        """((B, n) bool, (B,)): the ends of the edges displacements (B, n, 3) stretch more than
-        STRETCH_BOUND beyond their images under the source's deltas (B, n_s, 3), and each
-        expression's worst excess stretch (1 where no edge stretches past the bound)."""
+    def _passing_vertices(self, displacements, deltas, edges=None):
+        """((B, n) bool, (B,), (k,) or None): the ends of the edges displacements (B, n, 3)
+        stretch more than STRETCH_BOUND beyond their images under the source's deltas
+        (B, n_s, 3), and each expression's worst excess stretch (1 where no edge stretches past
+        the bound), among the bound's edges `edges` if given, else among all of them: then a
+        bound on each edge's length in these expressions too."""
         b = len(deltas)
         rest = self.rest_lengths
+        lower, higher = self.bound_ends
         # the edges' moves taken coordinate first (as _images), a few thousand edges at a time
         # so that their temporaries stay in cache: several times faster than a sparse
         # difference of all of them
         moves = np.ascontiguousarray(np.transpose(displacements, (2, 1, 0)))      # (3, n, B)
-        lower, higher = self.bound_ends
-        # an edge grows by at most its ends' moves: only where those (the block's largest) reach
-        # STRETCH_BOUND - 1 rest lengths (less a margin far beyond rounding) can it stretch past
-        reach = np.sqrt(components_dot(moves, moves)).max(axis=1)                   # (n,)
-        near = np.flatnonzero(reach[lower] + reach[higher] >
-                              (STRETCH_BOUND - 1) * (1 - 1e-9) * rest)
+        if edges is None:
+            # an edge grows by at most its ends' moves: only where those (the block's largest)
+            # reach STRETCH_BOUND - 1 rest lengths (less a margin far beyond rounding) can it
+            # stretch past
+            reach = np.sqrt(_row_largest(components_dot(moves, moves)))             # (n,)
+            reach = reach[lower] + reach[higher]                                     # (k,)
+            longest = rest + reach
+            near = np.flatnonzero(reach > (STRETCH_BOUND - 1) * (1 - 1e-9) * rest)
+        else:
+            longest, near = None, edges
         edges, stretched = [np.zeros(0, dtype=np.int64)], [np.zeros((0, b))]
         for rows in blocks(len(near), EDGES_PER_CHUNK):
             ids = near[rows]
-            lengths = _lengths(self.rest_edges[ids], (np.take(coordinate, higher[ids], axis=0) -
-                                                     np.take(coordinate, lower[ids], axis=0)
-                                                     for coordinate in moves))
-            # the image's stretch counts from 1, so only an edge stretched past the bound can pass
-            past = np.flatnonzero((lengths > STRETCH_BOUND * rest[ids, None]).any(axis=1))
+            squared = _squared_lengths(
+                self.rest_edges[ids], (np.take(coordinate, higher[ids], axis=0) -
+                                       np.take(coordinate, lower[ids], axis=0)
+                                       for coordinate in moves))
+            largest = _row_largest(squared)
+            if longest is not None:
+                longest[ids] = np.sqrt(largest)
+            # the image's stretch counts from 1, so only an edge stretched past the bound can
+            # pass: the lengths of those whose largest square passes the bound's (less a margin
+            # far beyond rounding) alone
+            candidate = largest > self.squared_bound_lengths[ids]
+            ids, lengths = ids[candidate], np.sqrt(squared[candidate])
+            past = (lengths > STRETCH_BOUND * rest[ids, None]).any(axis=1)
             edges.append(ids[past])
             stretched.append(lengths[past])
         edges = np.concatenate(edges)
@@ -540,17 +591,18 @@ class CorrespondedTransfer:
         passing = np.zeros((b, self.system.n), dtype=bool)
         edge, expression = np.nonzero(excess > STRETCH_BOUND)
         passing[np.repeat(expression, 2), self.bound_edges[edges[edge]].ravel()] = True
-        return passing, excess.max(axis=0, initial=1.0)
+        return passing, excess.max(axis=0, initial=1.0), longest
 
-    def _goals(self, ids, expression, deltas, moves, straddled, inverses):
+    def _goals(self, ids, expression, deltas, moves, straddled, inverses, vertex_rows):
         """(F, 3, 3) the gradients covered target triangles ids (F,) are given in expressions
         (F,) of the block: their images' (a straddling one's replacement), or their pairs'
-        weighted mean. inverses (F, 3, 3): the mapped ones' rest images' corner_inverses."""
+        weighted mean. inverses (F, 3, 3): the mapped ones' rest images' corner_inverses;
+        moves (v, 3B) at the target vertices of vertex_rows (n,)."""
         goals = np.empty((len(ids), 3, 3))
         mapped_index = self.mapped_index
         mapped = mapped_index[ids] >= 0
         goals[mapped] = self._image_gradients(mapped_index[ids[mapped]], expression[mapped], moves,
-                                              inverses[mapped])
+                                              inverses[mapped], vertex_rows)
         straddle_ids, straddle_expression, wanted = straddled
         key = mapped_index[ids] * len(deltas) + expression
         straddle_key = straddle_ids * len(deltas) + straddle_expression
@@ -559,18 +611,16 @@ class CorrespondedTransfer:
         goals[replaced] = wanted[order[np.searchsorted(straddle_key[order], key[replaced])]]
         paired = ~mapped
         if paired.any():
-            rows = self.pair_mean[self.paired_row[ids[paired]]]
+            rows, at = np.unique(self.paired_row[ids[paired]], return_inverse=True)
+            rows = self.pair_mean[rows]
             used = np.unique(rows.indices)
+            corners = self.used_source_triangles[used]
             gradients = deformation.deformed_gradients(                         # (B, U, 3, 3)
-                self.used_source_inverses[used],
-                (self.source_rest + deltas)[:, self.used_source_triangles[used]])
-            rows = rows[:, used]
-            pair_expression = expression[paired]
-            means = np.empty((len(pair_expression), 9))
-            for e in np.unique(pair_expression):
-                these = pair_expression == e
-                means[these] = rows[these] @ gradients[e].reshape(len(used), 9)
-            goals[paired] = means.reshape(-1, 3, 3)
+                self.used_source_inverses[used], self.source_rest[corners] + deltas[:, corners])
+            # each triangle's mean in every expression at once (p, B * 9)
+            means = rows[:, used] @ np.moveaxis(gradients, 0, 1).reshape(len(used), -1)
+            goals[paired] = means.reshape(len(rows.indptr) - 1, len(deltas), 3, 3)[
+                at.ravel(), expression[paired]]
         return goals
 
     def _image_offsets(self, moves, b):
@@ -590,15 +640,17 @@ class CorrespondedTransfer:
                                              _gram(*images, axis=0))
         return offsets.reshape(m, 3 * b), stretch
 
-    def _images(self, moves, rows):
+    def _images(self, moves, rows, vertex_rows=None):
         """The two deformed edges (3, r, B) of the mapped triangles rows' images, from the
-        sampled moves coordinate first (3, n, B: _coordinate_first)."""
-        first, second, third = self.image_corners
+        sampled moves coordinate first (3, n, B: _coordinate_first); vertex_rows (n,): each
+        target vertex's row of moves, where moves are not all of them."""
+        corners = self.image_corners[:, rows]
+        first, second, third = corners if vertex_rows is None else vertex_rows[corners]
         # np.take: several times faster than fancy indexing on a middle axis
-        origin = np.take(moves, first[rows], axis=1)
+        origin = np.take(moves, first, axis=1)
         images = []
         for ends, rest in zip((second, third), self.rest_image_edges):
-            edges = np.take(moves, ends[rows], axis=1) - origin
+            edges = np.take(moves, ends, axis=1) - origin
             edges += rest[:, rows, None]
             images.append(edges)
         return images
@@ -613,6 +665,12 @@ def _coordinate_first(moves, b):
 def _lengths(rest, moved):
     """(k, B) the lengths of edges (k, 3) at rest plus their moves (k, B) per coordinate (3 of
     them, changed in place: they are made for this)."""
+    squared = _squared_lengths(rest, moved)
+    return np.sqrt(squared, out=squared)
+
+
+def _squared_lengths(rest, moved):
+    """_lengths squared."""
     squared = None
     for axis, move in enumerate(moved):
         move += rest[:, axis, None]
@@ -621,7 +679,16 @@ def _lengths(rest, moved):
             squared = move
         else:
             squared += move
-    return np.sqrt(squared, out=squared)
+    return squared
+
+
+def _row_largest(values):
+    """(k,) the largest of each row of values (k, B), B >= 1: column by column, several times
+    faster than a reduction over so short an axis."""
+    largest = values[:, 0].copy()
+    for column in values.T[1:]:
+        np.maximum(largest, column, out=largest)
+    return largest
 
 
 def _gram(first, second, axis=-1):
