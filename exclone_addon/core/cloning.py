@@ -10,7 +10,7 @@ same motion. Ids and arrays in and out are in the caller's numbering.
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import cached_property
+from functools import cached_property, partial
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -24,7 +24,7 @@ from .mesh import checked_triangles, triangle_areas, vertex_parts, welded
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .reports import listed
-from .rims import RimGoals
+from .rims import RimGoals, rest_openings
 from .surface import Surface
 from .threads import limited_threads
 from .transfer import CorrespondedTransfer, Transfer
@@ -88,6 +88,10 @@ class FaceFit:
     fixed_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     _transfer: object = None          # the factorised system, made on the first transfer
     _rims: object = None              # rims.RimGoals of the eyes, made on the first transfer
+    # made by the fit where a thread would only wait, for the first transfer (None: it makes
+    # them): the target region's deformation.gradient_operator, and rims.rest_openings
+    _gradient: object = None
+    _openings: object = None
 
 
 @dataclass
@@ -143,8 +147,8 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
     target_weld = _welded_surface(target_mesh, "target mesh")
     source, target = source_weld.surface, target_weld.surface
     report(0.0, "landmarks")
-    src_lm, tgt_lm, landmark_names = _landmarks(source_weld, target_weld, landmarks,
-                                                source_landmarks, face_guide)
+    src_lm, tgt_lm, landmark_names, whole_gradient = _landmarks(
+        source_weld, target_weld, landmarks, source_landmarks, face_guide, settings.formulation)
     stopwatch.lap("landmarks")
 
     report(0.2, "registration")
@@ -152,8 +156,13 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
     automatic = landmarks is None
     rotation, scale, aligned = _rigid_alignment(source_region, target_region, src_lm, tgt_lm,
                                                 automatic, settings)
+    # both faces' eye openings at rest (the transfer's rims are found from them) are made while
+    # the registration's last step waits for its second thread
     reg = _registration(aligned, target_region, src_lm, tgt_lm, automatic, settings,
-                        _progress_span(report, 0.2, 0.85))
+                        _progress_span(report, 0.2, 0.85),
+                        meanwhile=partial(_rest_openings, target_region.vertices,
+                                          target_region.triangles, aligned.vertices,
+                                          source_region.triangles, landmark_names, tgt_lm, src_lm))
     stopwatch.lap("registration")
 
     report(0.85, "correspondence")
@@ -172,7 +181,28 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
         timings=stopwatch.timings,
         quality={**_registration_quality(reg, target_region.diagonal, len(src_lm)),
                  **_correspondence_quality(mapped, weights, scale, target_region.diagonal)},
-        fixed_vertices=_welded_ids(target_weld, fixed_vertices))
+        fixed_vertices=_welded_ids(target_weld, fixed_vertices),
+        _gradient=_region_gradient(whole_gradient, target, target_region),
+        _openings=reg.meanwhile)
+
+
+def _rest_openings(*arguments):
+    """rims.rest_openings(*arguments), or None if they fail: the transfer then finds them itself
+    and reports a failure where it always has."""
+    try:
+        return rest_openings(*arguments)
+    except Exception:
+        return None
+
+
+def _region_gradient(whole, target, region):
+    """The target region's rows of the whole welded target's gradient operator `whole` (reduced
+    formulation; None: not made), the region being whole connected parts of the target (its
+    triangles in the target's order, Surface.parts_holding): each triangle's rows are its own."""
+    if whole is None or region is target:
+        return whole
+    kept = np.isin(target.parts[target.triangles[:, 0]], target.parts[region.triangles[:, 0]])
+    return whole[np.repeat(kept, 3)]
 
 
 def _checked_settings(settings):
@@ -212,14 +242,17 @@ def _welded_ids(weld, ids):
     return np.unique(weld.index[ids])
 
 
-def _landmarks(source_weld, target_weld, landmarks, source_landmarks, face_guide=None):
+def _landmarks(source_weld, target_weld, landmarks, source_landmarks, face_guide=None,
+               formulation=deformation.REDUCED):
     """(source ids, target ids, names) in the welded numbering: the given pairs (the meshes'
-    own ids), checked, or automatic ones (on the target with face_guide's help, if given)."""
+    own ids), checked, or automatic ones (on the target with face_guide's help, if given); and
+    the whole welded target's gradient operator in `formulation` where this thread made it while
+    it would only wait (_prepare_for_fit), else None."""
     source, target = source_weld.surface, target_weld.surface
     if landmarks is not None:
         src_lm, tgt_lm = checked_pairs(landmarks, source_weld.own_count(), target_weld.own_count())
         return (source_weld.index[src_lm], target_weld.index[tgt_lm],
-                [f"landmark_{k}" for k in range(len(src_lm))])
+                [f"landmark_{k}" for k in range(len(src_lm))], None)
     if source_landmarks is not None:
         src_names, src_ids = list(source_landmarks[0]), np.asarray(source_landmarks[1])
         if len(src_names) != len(src_ids) or np.any(src_ids < 0) \
@@ -229,28 +262,36 @@ def _landmarks(source_weld, target_weld, landmarks, source_landmarks, face_guide
 
     # both faces at once when both are looked for (numpy and the KD-tree release the GIL);
     # the source's error, if any, is the one reported
+    gradient = None
     with ThreadPoolExecutor(max_workers=2) as pool:
         src_job = pool.submit(_found, source) if source_landmarks is None else None
         tgt_job = pool.submit(_found, target, face_guide)
         if src_job:
             src_names, src_ids = src_job.result()
         else:     # this thread would only wait: it prepares what the fit asks of the target
-            _prepare_for_fit(target)
+            gradient = _prepare_for_fit(target, formulation)
         tgt_names, tgt_ids = tgt_job.result()
     common = [n for n in src_names if n in tgt_names]
     if len(common) < MIN_PAIRS:
         raise ExCloneError(f"only {len(common)} landmarks were found on both faces; "
                            "place the landmarks by hand")
     return (np.array([src_ids[src_names.index(n)] for n in common], dtype=np.int64),
-            np.array([tgt_ids[tgt_names.index(n)] for n in common], dtype=np.int64), common)
+            np.array([tgt_ids[tgt_names.index(n)] for n in common], dtype=np.int64), common,
+            gradient)
 
 
-def _prepare_for_fit(surface):
+def _prepare_for_fit(surface, formulation):
     """Has the Surface find the answers the registration and the correspondence ask of a target
-    (it keeps them): its outward normals, open borders and areas."""
+    (it keeps them): its outward normals, open borders and areas. Returns its gradient operator
+    (deformation.gradient_operator) in the reduced formulation, whose rows for the target region
+    the transfer takes (_region_gradient), else None (the 4th-vertex form's unknowns are
+    numbered by the region's triangles)."""
     for answer in ("vertex_normals", "triangle_normals", "on_border", "border_search",
                    "vertex_areas", "border_lengths"):
         getattr(surface, answer)
+    if formulation != deformation.REDUCED:
+        return None
+    return deformation.gradient_operator(surface.vertices, surface.triangles, formulation)[0]
 
 
 def found_landmarks(mesh, what="mesh", face_guide=None):
@@ -333,15 +374,17 @@ def _rigid_alignment(source, target, src_lm, tgt_lm, automatic, settings):
     return rotation, scale, aligned
 
 
-def _registration(aligned, target, src_lm, tgt_lm, automatic, settings, report):
+def _registration(aligned, target, src_lm, tgt_lm, automatic, settings, report, meanwhile=None):
     """The non-rigid registration of the aligned source onto the target region; automatic
-    landmarks guide it softly, given ones are hard. ExCloneError if it did not converge."""
+    landmarks guide it softly, given ones are hard. ExCloneError if it did not converge.
+    meanwhile: as register's."""
     schedule = Schedule.preset(settings.preset)
     schedule.max_distance = settings.max_distance
     if automatic:
         schedule.landmark_weight = settings.landmark_weight
     reg = register(aligned, target, src_lm, target.vertices[tgt_lm],
-                   formulation=settings.formulation, schedule=schedule, progress=report)
+                   formulation=settings.formulation, schedule=schedule, progress=report,
+                   meanwhile=meanwhile)
     if reg.valid_fraction < 0.3:
         raise ExCloneError(
             f"registration did not converge: only {100 * reg.valid_fraction:.0f}% of the source "
@@ -577,14 +620,14 @@ def _transferred(fit, deltas):
     """(E, n_target, 3) target displacements of the source expressions' deltas (E, n_source, 3)."""
     if fit._transfer is None:
         system = Transfer(fit.target_region.vertices, fit.target_region.triangles, fit.weights,
-                          fit.formulation, fit.fixed_vertices)
+                          fit.formulation, fit.fixed_vertices, gradient=fit._gradient)
         fit._transfer = CorrespondedTransfer(system, fit.aligned_source, fit.source_region,
                                              fit.vertex_map, fit.mapped, fit.pairs, fit.weights)
     if fit._rims is None:
         fit._rims = RimGoals(fit.target_region, fit.aligned_source, fit.source_region,
                              fit.source_weld.index[fit.source_landmarks], fit.landmark_names,
                              fit.welded_target.index[fit.target_landmarks], fit.vertex_map,
-                             fit._transfer.system)
+                             fit._transfer.system, openings=fit._openings)
     result = fit._transfer(deltas @ fit.rotation.T * fit.scale, correction=fit._rims)
     result[:, fit._transfer.fixed] = 0.0       # also where a fixed vertex was left to follow
     if not np.all(np.isfinite(result)):

@@ -132,15 +132,18 @@ GIVING_WAY = 0.99          # at 50k vertices one edge crept 2.5674 -> 2.5666 ove
 
 class Transfer:
     def __init__(self, target_vertices, target_triangles, weights,
-                 formulation=deformation.REDUCED, fixed=()):
+                 formulation=deformation.REDUCED, fixed=(), gradient=None):
         """weights: (T,) per target triangle; 0 marks a triangle with no source gradient.
         fixed: (k,) target vertex ids held at exactly zero displacement (e.g. the cut border of
         a head cut out of a body): their unknowns are eliminated from the normal equations, and
-        a connected part holding any of them is not re-translated afterwards."""
+        a connected part holding any of them is not re-translated afterwards. gradient: the
+        target's deformation.gradient_operator in this formulation, if made already (a fit
+        makes it while it waits for the landmarks)."""
         self.n = len(target_vertices)
         self.rest_vertices = np.asarray(target_vertices, dtype=np.float64)
         self.triangles = np.asarray(target_triangles)
-        self.grad, _ = deformation.gradient_operator(target_vertices, target_triangles, formulation)
+        self.grad = gradient if gradient is not None else \
+            deformation.gradient_operator(target_vertices, target_triangles, formulation)[0]
         uncovered = np.asarray(weights) <= 0
         self.row_weight = np.where(uncovered, 1.0, weights)
         # the rows a given gradient enters with its weight (uncovered ones take the identity)
