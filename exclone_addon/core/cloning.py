@@ -10,7 +10,7 @@ same motion. Ids and arrays in and out are in the caller's numbering.
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from functools import cached_property, partial
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -24,7 +24,7 @@ from .mesh import checked_triangles, triangle_areas, vertex_parts, welded
 from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .reports import listed
-from .rims import RimGoals, rest_openings
+from .rims import RimGoals
 from .surface import Surface
 from .threads import limited_threads
 from .transfer import CorrespondedTransfer, Transfer
@@ -88,10 +88,9 @@ class FaceFit:
     fixed_vertices: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     _transfer: object = None          # the factorised system, made on the first transfer
     _rims: object = None              # rims.RimGoals of the eyes, made on the first transfer
-    # made by the fit where a thread would only wait, for the first transfer (None: it makes
-    # them): the target region's deformation.gradient_operator, and rims.rest_openings
+    # the target region's deformation.gradient_operator, made by the fit where a thread would
+    # only wait, for the first transfer (None: the transfer makes it)
     _gradient: object = None
-    _openings: object = None
 
 
 @dataclass
@@ -156,13 +155,8 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
     automatic = landmarks is None
     rotation, scale, aligned = _rigid_alignment(source_region, target_region, src_lm, tgt_lm,
                                                 automatic, settings)
-    # both faces' eye openings at rest (the transfer's rims are found from them) are made while
-    # the registration's last step waits for its second thread
     reg = _registration(aligned, target_region, src_lm, tgt_lm, automatic, settings,
-                        _progress_span(report, 0.2, 0.85),
-                        meanwhile=partial(_rest_openings, target_region.vertices,
-                                          target_region.triangles, aligned.vertices,
-                                          source_region.triangles, landmark_names, tgt_lm, src_lm))
+                        _progress_span(report, 0.2, 0.85))
     stopwatch.lap("registration")
 
     report(0.85, "correspondence")
@@ -182,17 +176,7 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
         quality={**_registration_quality(reg, target_region.diagonal, len(src_lm)),
                  **_correspondence_quality(mapped, weights, scale, target_region.diagonal)},
         fixed_vertices=_welded_ids(target_weld, fixed_vertices),
-        _gradient=_region_gradient(whole_gradient, target, target_region),
-        _openings=reg.meanwhile)
-
-
-def _rest_openings(*arguments):
-    """rims.rest_openings(*arguments), or None if they fail: the transfer then finds them itself
-    and reports a failure where it always has."""
-    try:
-        return rest_openings(*arguments)
-    except Exception:
-        return None
+        _gradient=_region_gradient(whole_gradient, target, target_region))
 
 
 def _region_gradient(whole, target, region):
@@ -374,17 +358,15 @@ def _rigid_alignment(source, target, src_lm, tgt_lm, automatic, settings):
     return rotation, scale, aligned
 
 
-def _registration(aligned, target, src_lm, tgt_lm, automatic, settings, report, meanwhile=None):
+def _registration(aligned, target, src_lm, tgt_lm, automatic, settings, report):
     """The non-rigid registration of the aligned source onto the target region; automatic
-    landmarks guide it softly, given ones are hard. ExCloneError if it did not converge.
-    meanwhile: as register's."""
+    landmarks guide it softly, given ones are hard. ExCloneError if it did not converge."""
     schedule = Schedule.preset(settings.preset)
     schedule.max_distance = settings.max_distance
     if automatic:
         schedule.landmark_weight = settings.landmark_weight
     reg = register(aligned, target, src_lm, target.vertices[tgt_lm],
-                   formulation=settings.formulation, schedule=schedule, progress=report,
-                   meanwhile=meanwhile)
+                   formulation=settings.formulation, schedule=schedule, progress=report)
     if reg.valid_fraction < 0.3:
         raise ExCloneError(
             f"registration did not converge: only {100 * reg.valid_fraction:.0f}% of the source "
@@ -627,7 +609,7 @@ def _transferred(fit, deltas):
         fit._rims = RimGoals(fit.target_region, fit.aligned_source, fit.source_region,
                              fit.source_weld.index[fit.source_landmarks], fit.landmark_names,
                              fit.welded_target.index[fit.target_landmarks], fit.vertex_map,
-                             fit._transfer.system, openings=fit._openings)
+                             fit._transfer.system)
     result = fit._transfer(deltas @ fit.rotation.T * fit.scale, correction=fit._rims)
     result[:, fit._transfer.fixed] = 0.0       # also where a fixed vertex was left to follow
     if not np.all(np.isfinite(result)):

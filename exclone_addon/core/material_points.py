@@ -57,8 +57,8 @@ FORWARD_BACKWARD_PX = 0.7
 # points, 0.16 px median a frame at 0.37 px of motion, reading 0.92 of it; 0.006 px with the head
 # still), and what the pull takes back of it, it takes of the expressions too (FaceMesh follows
 # the brows, frowns and pucker 0.2-0.5 of the way): a fixed share of 0.2 cost the head-still take
-# 0.64 against 0.75 of correlation with none. With the shading in the flow's frames 0.3 per pixel
-# held its drift best (docs/method.md §11).
+# 0.64 against 0.75 of correlation with none. 0.3 per pixel held the drift best while the flow
+# followed the frames with their shading, 0.25 since it follows them less it (docs/method.md §11).
 PULL_PER_PX = 0.25
 PULL_MAX = 0.3
 # A material point's weight in the fit against one of FaceMesh's (their noise is a fraction of

@@ -58,7 +58,6 @@ class Registration:
     history: list = field(default_factory=list)   # mean distance before each w_C step, and at the end
     # (before each step: over all region vertices with a valid closest point of that step)
     surface: object = None            # surface.Surface of the registered source region
-    meanwhile: object = None          # what register's `meanwhile` returned
 
 
 class ReusedOrderingSolver:
@@ -293,15 +292,12 @@ def _solve_with_fixed(solver, matrix, rhs, x, fixed_ids):
 # ------------------------------------------------------------------------------ the schedule
 
 def register(source, target, landmark_ids, landmark_positions, *, formulation=deformation.REDUCED,
-             schedule=None, progress=None, meanwhile=None):
+             schedule=None, progress=None):
     """Deform the source (a surface.Surface already aligned to the target's frame, its triangles
     the region to register) onto the target Surface; returns a Registration.
 
     Source vertices on no region triangle stay where they are. landmark_ids: source vertex ids
     that go to landmark_positions (target coordinates), hard or soft as the schedule says.
-    meanwhile: a callable this thread runs in the last step while the second thread finds the
-    target's pull (by all the target's points, it takes longer than the source's closest
-    points); its result is the Registration's `meanwhile`.
     """
     schedule = schedule or Schedule()
     _check_registrable(source, target)
@@ -328,7 +324,6 @@ def register(source, target, landmark_ids, landmark_positions, *, formulation=de
         # surfaces
         steps = ((0.0,) if schedule.landmark_weight is None else ()) + tuple(
             schedule.closest_weights)
-        made = None
         for k, w_c in enumerate(steps):
             if progress:
                 progress(k / len(steps), f"registration step {k + 1}/{len(steps)}")
@@ -336,10 +331,9 @@ def register(source, target, landmark_ids, landmark_positions, *, formulation=de
             if w_c > 0:
                 # the steps before the last only bring the fit near: the coarse pull does that
                 last = k == len(steps) - 1
-                fit_terms, distance, made = _fit_terms(
-                    source.moved(x[:len(source.vertices)]), target,
-                    pulling if last else coarse_pulling, border_pulling, schedule, len(x), pool,
-                    meanwhile if last else None)
+                fit_terms, distance = _fit_terms(source.moved(x[:len(source.vertices)]), target,
+                                                 pulling if last else coarse_pulling,
+                                                 border_pulling, schedule, len(x), pool)
                 history.append(distance)
                 matrix, rhs = _weighted_sum((1.0, (matrix, rhs)), (w_c, fit_terms))
             if schedule.landmark_weight is None:
@@ -347,9 +341,7 @@ def register(source, target, landmark_ids, landmark_positions, *, formulation=de
             else:
                 pin = schedule.landmark_weight * max(w_c, 1.0)
                 x = solver.solve(*_weighted_sum((1.0, (matrix, rhs)), (pin, pins)))
-    registration = _registration(source.moved(x[:len(source.vertices)]), target, schedule, history)
-    registration.meanwhile = made
-    return registration
+    return _registration(source.moved(x[:len(source.vertices)]), target, schedule, history)
 
 
 def _check_registrable(source, target):
@@ -397,11 +389,8 @@ def _one_per_cell(points, normals, weights, cell):
     return points[first], normals[first], np.bincount(inverse.ravel(), weights)
 
 
-def _fit_terms(fitted, target, pulling, border_pulling, schedule, n_unknowns, pool,
-               meanwhile=None):
-    """E_closest + E_target + E_border at the current fit, the mean closest-point distance, and
-    what `meanwhile` (a callable, or None) returned: it runs here before the target pull is
-    waited for."""
+def _fit_terms(fitted, target, pulling, border_pulling, schedule, n_unknowns, pool):
+    """E_closest + E_target + E_border at the current fit, and the mean closest-point distance."""
     _ = fitted.vertex_normals       # computed once, before both threads read them
     # the target-to-source pull is computed beside the source-to-target closest points (numpy
     # and the KD-tree release the GIL, so the two use both cores)
@@ -410,8 +399,7 @@ def _fit_terms(fitted, target, pulling, border_pulling, schedule, n_unknowns, po
     closest, distance = closest_point_term(fitted, target, schedule, n_unknowns)
     border = border_pull_term(fitted, border_pulling, schedule.border_distance * target.diagonal,
                               n_unknowns)
-    made = meanwhile() if meanwhile is not None else None
-    return _weighted_sum((1.0, closest), (1.0, pull_job.result()), (1.0, border)), distance, made
+    return _weighted_sum((1.0, closest), (1.0, pull_job.result()), (1.0, border)), distance
 
 
 def _registration(registered, target, schedule, history):

@@ -86,19 +86,19 @@ class RimGoals:
     """The eyes' rim rows on the welded target region, and the factorised correction."""
 
     def __init__(self, region, source_vertices, source_triangles, source_landmark_ids,
-                 landmark_names, landmark_ids, vertex_map, transfer, openings=None):
+                 landmark_names, landmark_ids, vertex_map, transfer):
         """region: surface.Surface of the target triangles the transfer solves (welded numbering);
         source_vertices (n_source, 3): the aligned source (the target's frame, welded numbering);
         source_triangles: the source region's triangles; source_landmark_ids, landmark_names,
         landmark_ids: the fit's source and target landmarks (welded ids); vertex_map: the fit's
         correspondence.VertexMap; transfer: the fit's transfer.Transfer (its gradient operator
-        and weights); openings: rest_openings of these if made already (found again unless made
-        on these very surfaces and landmarks)."""
-        arguments = (region.vertices, region.triangles, source_vertices, source_triangles,
-                     landmark_names, landmark_ids, source_landmark_ids)
-        if openings is None or not _made_on(openings, *arguments):
-            openings = rest_openings(*arguments)
-        openings, source_openings = openings
+        and weights)."""
+        names = [str(name) for name in landmark_names]
+        openings = expression_measures.Openings(
+            region.vertices, region.triangles, dict(zip(names, np.asarray(landmark_ids).tolist())))
+        source_openings = expression_measures.Openings(
+            source_vertices, source_triangles,
+            dict(zip(names, np.asarray(source_landmark_ids).tolist()))) if openings.lids else None
         self.openings = openings
         self.eyes = []
         for key, lids in openings.lids.items():
@@ -140,38 +140,6 @@ class RimGoals:
             goals += [rim, np.einsum("tk,ekc->etc", eye.carried, rim)]
         goals = np.concatenate(goals, axis=1)                                   # (E, k, 3)
         return result + self.solve(goals - result[:, self.ids])
-
-
-def rest_openings(vertices, triangles, source_vertices, source_triangles, landmark_names,
-                  landmark_ids, source_landmark_ids):
-    """(the target's, the source's) expression_measures.Openings at rest, the source's only where
-    the target has lids (else None): what the rims are found from, on the target region
-    (vertices, triangles) and the aligned source region, with their landmarks (names, welded
-    ids). They depend on the rest surfaces and the landmarks alone: a fit makes them while it
-    waits during its registration (core.cloning)."""
-    openings = expression_measures.Openings(vertices, triangles,
-                                            _named(landmark_names, landmark_ids))
-    source_openings = expression_measures.Openings(
-        source_vertices, source_triangles, _named(landmark_names, source_landmark_ids)) \
-        if openings.lids else None
-    return openings, source_openings
-
-
-def _made_on(openings, vertices, triangles, source_vertices, source_triangles, landmark_names,
-             landmark_ids, source_landmark_ids):
-    """Whether rest_openings `openings` are those of these surfaces and landmarks."""
-    target, source = openings
-    if not target.made_on(vertices, triangles, _named(landmark_names, landmark_ids)):
-        return False
-    if not target.lids:
-        return source is None
-    return source is not None and source.made_on(source_vertices, source_triangles,
-                                                 _named(landmark_names, source_landmark_ids))
-
-
-def _named(names, ids):
-    """{name: vertex id} of landmarks."""
-    return dict(zip([str(name) for name in names], np.asarray(ids).tolist()))
 
 
 def _unmatched_thickness(lids, source_lids, vertices, used, source_vertices, source_used,
