@@ -428,7 +428,9 @@ class CorrespondedTransfer:
         self.image_edge_difference = (edge_difference @ image_sampling).tocsr()
         self.rest_edges = edge_difference @ self.system.rest_vertices                 # (k, 3)
         self.rest_lengths = np.linalg.norm(self.rest_edges, axis=1)
-        self.squared_bound_lengths = (STRETCH_BOUND * self.rest_lengths) ** 2 * (1 - 1e-9)
+        # the length past which an edge may pass STRETCH_BOUND, less a margin far beyond rounding
+        self.bound_lengths = STRETCH_BOUND * (1 - 1e-9) * self.rest_lengths
+        self.squared_bound_lengths = self.bound_lengths ** 2
         self.image_rest_edges = self.image_edge_difference @ self.source_rest         # (k, 3)
         t = len(triangles)
         self.vertex_triangles = sp.csr_matrix(
@@ -532,12 +534,12 @@ class CorrespondedTransfer:
         their displacements out (E, n, 3) and source deltas (E, n_s, 3). longest (blocks of E,
         k): a bound on each edge's length in each block's expressions. Not bounded: ids are
         every expression, in order, and longest is made; bounded: only the edges it lets pass
-        STRETCH_BOUND (less a margin far beyond rounding) are measured."""
+        their bound_lengths are measured."""
         for block in blocks(len(ids)):
             chosen = ids[block] if bounded else block       # every expression: a view of each block
             edges = np.flatnonzero(
-                (longest[np.unique(chosen // EXPRESSIONS_PER_BLOCK)] >
-                 STRETCH_BOUND * (1 - 1e-9) * self.rest_lengths).any(axis=0)) if bounded else None
+                (longest[np.unique(chosen // EXPRESSIONS_PER_BLOCK)] > self.bound_lengths).any(
+                    axis=0)) if bounded else None
             passing[chosen], worst[chosen], made = self._passing_vertices(
                 out[chosen], deltas[chosen], edges)
             if not bounded:
@@ -577,8 +579,7 @@ class CorrespondedTransfer:
             if longest is not None:
                 longest[ids] = np.sqrt(largest)
             # the image's stretch counts from 1, so only an edge stretched past the bound can
-            # pass: the lengths of those whose largest square passes the bound's (less a margin
-            # far beyond rounding) alone
+            # pass: the lengths of those whose largest square passes the bound length's alone
             candidate = largest > self.squared_bound_lengths[ids]
             ids, lengths = ids[candidate], np.sqrt(squared[candidate])
             past = (lengths > STRETCH_BOUND * rest[ids, None]).any(axis=1)
