@@ -733,7 +733,8 @@ def in_subprocess(case, extra=()):
     if proc.returncode != 0:
         tail = proc.stderr.strip().splitlines()[-1:] or [f"exit code {proc.returncode}"]
         return {"error": tail[0]}
-    result = json.loads(proc.stdout)
+    # the case's JSON is its last line: Blender prints operator reports to stdout before it
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
     result["wall_seconds_subprocess"] = round(time.perf_counter() - started, 1)
     return result
 
