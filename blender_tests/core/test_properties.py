@@ -359,3 +359,16 @@ def test_transfer_refuses_bad_deltas_with_a_message(known_fit, shape, seed):
         assert result is None or result.deltas.shape == (0, len(fit.target.vertices), 3)
     else:
         assert result is None, f"deltas with bad {shape} were accepted"
+
+
+@settings(max_examples=20, **SETTINGS)
+@given(expressions=st.integers(1, 9), vectors=st.integers(0, 5), seed=st.integers(0, 2 ** 16))
+@example(expressions=3, vectors=0, seed=0)   # no vectors: was a reshape ValueError
+def test_the_solves_column_layout_round_trips(expressions, vectors, seed):
+    """transfer.as_columns and as_rows are inverses for any count of expressions and vectors,
+    none included (the stretch bound's rounds may reach only triangles without an image)."""
+    values = np.random.default_rng(seed).standard_normal((expressions, vectors, 3))
+    columns = transfer.as_columns(values)
+    assert columns.shape == (vectors, 3 * expressions)
+    assert columns[:, expressions:2 * expressions].T.tolist() == values[..., 1].tolist()
+    assert np.array_equal(transfer.as_rows(columns), values)

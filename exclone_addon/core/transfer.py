@@ -462,6 +462,8 @@ class CorrespondedTransfer:
             region |= passing.any(axis=0)
             around = (self.vertex_triangles.T @ region.astype(np.float64)) > 0       # (T,)
             added = np.flatnonzero(around & ~capped & self.covered)
+            if not len(added):                # every triangle around the passing edges is capped
+                break
             capped |= around
             triangles, expression, change = self._capping_changes(deltas, added, share)
             for bound, block in zip(longest, blocks(len(deltas))):
@@ -747,12 +749,14 @@ def blocks(count, size=EXPRESSIONS_PER_BLOCK):
 def as_columns(values):
     """(B, k, 3) per-expression vectors -> (k, 3B), the solve's layout: column xyz * B + e
     (each coordinate's B columns side by side)."""
-    return np.ascontiguousarray(np.transpose(values, (1, 2, 0))).reshape(values.shape[1], -1)
+    columns = np.ascontiguousarray(np.transpose(values, (1, 2, 0)))
+    return columns.reshape(values.shape[1], 3 * len(values))     # not -1: k may be 0
 
 
 def as_rows(columns):
     """(k, 3B) in the solve's layout -> (B, k, 3)."""
-    return np.transpose(columns.reshape(len(columns), 3, -1), (2, 0, 1))
+    b = columns.shape[1] // 3                 # given, not -1: k may be 0
+    return np.transpose(columns.reshape(len(columns), 3, b), (2, 0, 1))
 
 
 def _checked_fixed(fixed, n_vertices):
