@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from . import data
 from .errors import ExCloneError
 from .mesh import outward_sign, vertex_normals, vertex_parts
-from .orientation import face_frame
+from .orientation import PROTRUSION_RADIUS, face_frame, stand_out
 
 HEURISTIC = (
     "nose_tip", "head_top", "ear_tip_left", "ear_tip_right", "nose_bridge", "alar_left",
@@ -39,10 +39,10 @@ NORMAL_PLACED = ("jaw_left", "jaw_right")
 # The heuristic points that carry the template's: the ones that stay put when the face turns
 # (the crown, the back of the head and the alar creases slide along flat or shallow shapes).
 # The nose tip (x the diagonal): midline vertices within TIP_DEPTH of the front-most are its
-# candidates, each measured by how far it stands out of the surface within TIP_SURROUNDINGS (the
-# face frame's protrusion radius, core.orientation); the tip is the front-most vertex within
-# TIP_BUMP of the one that stands out most (the tip of that bump, not a point on its slope).
-TIP_DEPTH, TIP_SURROUNDINGS, TIP_BUMP = 0.03, 0.08, 0.02
+# candidates, each measured by how far it stands out of the surface around it (the face frame's
+# orientation.stand_out); the tip is the front-most vertex within TIP_BUMP of the one that stands
+# out most (the tip of that bump, not a point on its slope).
+TIP_DEPTH, TIP_BUMP = 0.03, 0.02
 TIP_SAMPLES = 1000
 RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip",
                "eye_inner_left", "eye_inner_right", "eye_outer_left", "eye_outer_right",
@@ -249,10 +249,9 @@ def _nose_tip(q, used, diag):
     # measured on up to TIP_SAMPLES of each (a dense head has thousands): only the bump counts
     surface = q[used[::max(1, len(used) // TIP_SAMPLES)]]
     candidates = front[::max(1, len(front) // TIP_SAMPLES)]
-    surroundings = cKDTree(surface).query_ball_point(q[candidates], TIP_SURROUNDINGS * diag)
-    stand_out = [q[vertex, 2] - surface[around, 2].mean()
-                 for vertex, around in zip(candidates, surroundings)]
-    best = q[candidates[np.argmax(stand_out)]]
+    standing_out = stand_out(q[candidates, 2], surface[:, 2], cKDTree(surface), q[candidates],
+                             PROTRUSION_RADIUS * diag)
+    best = q[candidates[np.argmax(standing_out)]]
     bump = front[np.linalg.norm(q[front] - best, axis=1) < TIP_BUMP * diag]
     return bump[np.argmax(q[bump, 2])], near_mid
 
