@@ -34,8 +34,9 @@ MEAN_BAR, P95_BAR, RATIO_BAR = 0.003, 0.008, 1.3
 
 # Reached (measured in both venvs, numpy 1.26 and 2; the transfer error's ratio moved between
 # 1.72x and 1.80x on seed 1 with the eyelid rims' changes), checked with a 10% margin:
-# seed -> (mean, 95th percentile, transfer error / exact registration's).
-REACHED = {1: (0.0058, 0.0168, 1.80), 2: (0.0117, 0.0302, 2.89)}
+# seed -> (mean, 95th percentile, transfer error / exact registration's, the same through
+# fit_registered from the engine's registration: its landmarks, so its eyelid rims, left out).
+REACHED = {1: (0.0058, 0.0168, 1.80, 1.79), 2: (0.0117, 0.0302, 2.89, 1.79)}
 MARGIN = 1.1
 
 
@@ -46,7 +47,8 @@ def library():
 
 @pytest.fixture(scope="module", params=sorted(REACHED), ids=lambda seed: f"seed{seed}")
 def identity(request, library):
-    """The measured clone of one identity: {seed, mean, p95, ratio, text}."""
+    """The measured clone of one identity: {seed, mean, p95, ratio, registration_ratio,
+    text}."""
     seed = request.param
     with np.load(IDENTITIES) as model:
         modes = model["deltas"].astype(np.float64)
@@ -64,24 +66,30 @@ def identity(request, library):
     region = np.unique(triangles)
     error = np.linalg.norm(clone.registered_source[region] - exact[region], axis=1) \
         / diagonal(target.vertices)
-    exact_clone = transfer_expressions(fit_registered(source, target, exact), deltas,
-                                       library.names)
+    exact_clone, registration_only = (
+        transfer_expressions(fit_registered(source, target, registered), deltas, library.names)
+        for registered in (exact, clone.registered_source))
     engine = float(np.nanmean(gt.relative_error(clone.deltas, truth)))
     best = float(np.nanmean(gt.relative_error(exact_clone.deltas, truth)))
+    registration = float(np.nanmean(gt.relative_error(registration_only.deltas, truth)))
     figures = {"seed": seed, "mean": float(error.mean()),
-               "p95": float(np.quantile(error, 0.95)), "ratio": engine / best}
+               "p95": float(np.quantile(error, 0.95)), "ratio": engine / best,
+               "registration_ratio": registration / best}
     figures["text"] = (f"seed {seed}: correspondence mean {100 * figures['mean']:.2f}%, "
                        f"95th percentile {100 * figures['p95']:.2f}% of the diagonal; transfer "
                        f"error {engine:.3f} against {best:.3f} from the exact registration "
-                       f"({figures['ratio']:.2f}x); {clone.quality['landmark_count']} landmarks")
+                       f"({figures['ratio']:.2f}x; the registration alone "
+                       f"{figures['registration_ratio']:.2f}x); "
+                       f"{clone.quality['landmark_count']} landmarks")
     return figures
 
 
 def test_the_registration_reaches_what_it_reached(identity):
-    mean, p95, ratio = REACHED[identity["seed"]]
+    mean, p95, ratio, registration_ratio = REACHED[identity["seed"]]
     assert identity["mean"] <= MARGIN * mean, identity["text"]
     assert identity["p95"] <= MARGIN * p95, identity["text"]
     assert identity["ratio"] <= MARGIN * ratio, identity["text"]
+    assert identity["registration_ratio"] <= MARGIN * registration_ratio, identity["text"]
 
 
 @pytest.mark.xfail(strict=True, reason="measured: mean 0.58% / 1.17%, 95th percentile 1.68% / "
