@@ -106,6 +106,13 @@ def test_an_avatar_without_arkit_eye_keys_gets_no_eye_rows():
     assert weights["eyeBlink_L"] < 1e-6
 
 
+def test_the_rows_name_the_keys_they_read():
+    names = ["jawOpen", "eyeBlink_L", "eyeLookOut_R", "browDown_L", "eyeWide_R", "eyeSquint_L"]
+    targets = eyes.EyeTargets(names, NEUTRAL, key_scale=1.0)
+    assert targets.keys.tolist() == [False, True, True, False, True, True]
+    assert not eyes.EyeTargets(["jawOpen", "smile"], NEUTRAL, key_scale=1.0).keys.any()
+
+
 @pytest.mark.parametrize("turn", [(0, 0, 0), (30, 0, 0), (0, 20, 0), (-25, 15, 10)])
 def test_geometry_brings_a_turned_heads_reading_back_to_frontal(turn):
     """Eyes with known lids and gaze seen on a head turned by `turn` (yxz degrees): the reading

@@ -316,6 +316,10 @@ class EyeTargets:
         self.neutral = neutral
         self._row_weight = np.sqrt(EYE_TRUST * key_scale)
         self._rows = [_eye_rows(names, side) for side in SIDES]
+        # (N,) whether each key is one the rows read (the session solves the others without them)
+        self.keys = np.zeros(len(names), dtype=bool)
+        for row in (row for eye_rows in self._rows for row in eye_rows if row is not None):
+            self.keys |= row != 0
         self._open_gaze = np.zeros((2, 2))
 
     def rows(self, reading):
