@@ -515,7 +515,16 @@ class FaceTrackingSession:
         exist; after the calibration frame itself); the frame is recorded."""
         start = time.perf_counter()
         displacement = self._fitter.model.shape(params) - self.neutral
-        if reading is not None and self._eye_targets is not None and not self._pending:
+        values = self._solved(displacement, None if self._pending else reading)
+        stage_ms["weights"] = 1000 * (time.perf_counter() - start)
+        self.take.timestamps.append(float(timestamp))
+        self.take.displacements.append(displacement)
+        return dict(zip(self.solver.names, values.tolist()))
+
+    def _solved(self, displacement, reading):
+        """(N,) the avatar's weights for a displacement from the neutral (468, 3) and the eyes'
+        frontal reading (None: no eyes' rows)."""
+        if reading is not None and self._eye_targets is not None:
             values = self.solver.solve(displacement, *self._eye_targets.rows(reading))
         else:
             values = self.solver.solve(displacement)
@@ -525,10 +534,7 @@ class FaceTrackingSession:
             # lids), so with the eye keys' motion taken off them the brow keys answer its
             # negative (docs/method.md §12)
             values[self._other_keys] = self._other_solver.solve(displacement)
-        stage_ms["weights"] = 1000 * (time.perf_counter() - start)
-        self.take.timestamps.append(float(timestamp))
-        self.take.displacements.append(displacement)
-        return dict(zip(self.solver.names, values.tolist()))
+        return values
 
     def _finish_calibration(self):
         frames = np.array(self._calibration_points)
