@@ -161,10 +161,11 @@ def test_the_true_points_keep_every_driven_shape(kind):
 
 
 # Measured on the turning take (a neutral face, its eyes fixed in the head, turning up to 30 deg):
-# the largest weight of any key 0.54 (eyeSquint_L; of the others 0.52, jawRight, the brows 0.45),
-# of the eyes' keys 0.54 (eyeSquint_L): checked with a margin. Before the keys the eyes do not
-# read were solved from the landmarks alone (core.session): 0.60 (browDown_L, answering the eye
-# keys' motion about the eyes), the eyes' keys 0.54. Before the flow followed the frames less
+# the largest weight of any key 0.52 (eyeSquint_L; of the others 0.52, jawRight, the brows 0.45),
+# of the eyes' keys 0.52 (eyeSquint_L): checked with a margin. Before a pitched eye's lid rows
+# counted less too (eyes.EyeGeometry.facing): 0.54 (eyeSquint_L), 0.54. Before the keys the eyes
+# do not read were solved from the landmarks alone (core.session): 0.60 (browDown_L, answering the
+# eye keys' motion about the eyes), the eyes' keys 0.54. Before the flow followed the frames less
 # their blur (the pull 0.3 per pixel): 0.56 (browDown_L), 0.52. Before the material points' pull grew with the head's motion (a fixed 0.2): 0.58
 # (browDown_L; without the eyes' rows 0.51, jawRight), 0.52. Before the material points' refit carried a
 # turn of their own and refined their depths (core.material_points): 0.64 (mouthLowerDown_L;
@@ -172,7 +173,7 @@ def test_the_true_points_keep_every_driven_shape(kind):
 # (eyeLookIn_R), eyeWide_R 0.29, eyeBlink_L 0.24). Before the eyes' frontal reading lost the slide learnt with the head's turn (core.eyes.EyeSlide) and a
 # turned eye's lid rows counted less (eyes.LID_FACING_POWER): 0.71 (eyeSquint_R), the gaze keys
 # 0.48, eyeWide_R 0.45, eyeBlink_L 0.30.
-MEASURED_FALSE_WEIGHT = {"": 0.58, "eye": 0.62}
+MEASURED_FALSE_WEIGHT = {"": 0.57, "eye": 0.57}
 
 
 @pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT), ids=["all keys", "eye keys"])
@@ -182,13 +183,13 @@ def test_a_turning_neutral_face_as_measured(turning, keys):
 
 
 # The same turning take after a wide calibration (three seconds of a neutral face turning over
-# yaw +-30, pitch +-20 deg; the tracker unchanged: docs/method.md §11): 0.51 (eyeSquint_L, an eye
-# key; the brows 0.38, 0.45 before the keys the eyes do not read were solved from the landmarks
-# alone; 0.51 too before the flow followed the frames less their blur and before the pull grew with
+# yaw +-30, pitch +-20 deg; the tracker unchanged: docs/method.md §11): 0.50 (eyeSquint_L, an eye
+# key; 0.51 before a pitched eye's lid rows counted less too; the brows 0.38, 0.45 before the keys
+# the eyes do not read were solved from the landmarks alone; 0.51 too before the flow followed the frames less their blur and before the pull grew with
 # the head's motion), checked with a margin (before the material points' own turn and depths: 0.54
 # (mouthPress_L), the eyes' keys 0.52 (eyeSquint_L); before the eyes' learnt slide: 0.55, 0.52
 # (eyeSquint_R)).
-MEASURED_FALSE_WEIGHT_WIDE = {"": 0.62, "eye": 0.62}
+MEASURED_FALSE_WEIGHT_WIDE = {"": 0.54, "eye": 0.54}
 
 
 @pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT_WIDE), ids=["all keys", "eye keys"])
@@ -198,7 +199,7 @@ def test_a_turning_neutral_face_after_a_wide_calibration_as_measured(turning_wid
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
-                                       "weight 0.54 (eyeSquint_L; FaceMesh's fit alone 0.55, "
+                                       "weight 0.52 (eyeSquint_L; FaceMesh's fit alone 0.55, "
                                        "browDown_L): after the learnt slide the "
                                        "iris model's lids on the turning eyes still spread by "
                                        "0.03-0.04 of the opening (0.07 at the 95th percentile), "

@@ -166,6 +166,18 @@ def test_the_learnt_slide_is_taken_off_the_frontal_reading():
         np.testing.assert_allclose(found, expected, atol=1e-12)
 
 
+def test_a_pitched_heads_eyes_face_the_camera_less():
+    """Pitched 20 degrees, both eyes are foreshortened along their lids alike (about the cosine
+    of the pitch); their corner lines are not."""
+    from scipy.spatial.transform import Rotation
+    from exclone_addon.core import data
+    from exclone_addon.core.tracking import FRONTAL, Camera
+    geometry = eyes.EyeGeometry(data.canonical_face().vertices, Camera.from_image_size(640, 480))
+    for pitch in (20, -20):
+        facing = geometry.facing(Rotation.from_euler("x", pitch, degrees=True) * FRONTAL)
+        np.testing.assert_allclose(facing, np.cos(np.radians(20)), atol=0.02)
+
+
 def test_a_turned_eyes_lids_count_less():
     """A head turned 30 degrees: the far eye faces the camera less than the near one, both less
     than facing it, and the same lid change asks for less of the far eye's key."""
