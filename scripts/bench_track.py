@@ -163,14 +163,14 @@ def component_cpu(session, frames, repeats=30):
         return session._eye_geometry.frontal(eyes.read_eyes(eye_points), fit.rotation,
                                              fit.translation, neutral_iris)
     displacement = session._fitter.model.shape(fit.params) - session.neutral
-    rows = session._eye_targets.rows(frontal())
+    reading = frontal()
     calls = {
         "landmarks": lambda: session.landmarker.landmarks(image, roi),
         "iris": lambda: session.iris.eyes(image, points),
         "fit_start": lambda: session._fitter.start_from(previous),
         "fit": lambda: session._fitter.fit(points, previous=fit_start),
         "eyes": frontal,
-        "weights": lambda: session.solver.solve(displacement, *rows),
+        "weights": lambda: session._solved(displacement, reading),
     }
     times = {}
     for name, call in calls.items():

@@ -21,15 +21,13 @@ def tracked_eyes():
                                       read_tracker_locations())
     session = FaceTrackingSession(avatar=avatar, camera=take.camera,
                                   calibration_frames=CALIBRATION_FRAMES)
-    names = ("eyeBlink_L", "eyeBlink_R", "eyeLookOut_L", "eyeLookIn_L", "eyeLookOut_R",
-             "eyeLookIn_R", "eyeLookUp_L", "eyeLookUp_R", "eyeLookDown_L", "eyeLookDown_R")
-    weights = {name: np.full(len(take.frames), np.nan) for name in names}
+    weights = {name: np.full(len(take.frames), np.nan) for name in library.names}
     for k, path in enumerate(take.frames):
         result = session.step(cv2.imread(str(path)), k / FPS)
         assert result.found, f"no face in frame {k}"
         if result.weights is not None:
-            for name in names:
-                weights[name][k] = result.weights[name]
+            for name, value in result.weights.items():
+                weights[name][k] = value
     w = weights
     yaw = w["eyeLookOut_L"] + w["eyeLookIn_R"] - w["eyeLookIn_L"] - w["eyeLookOut_R"]
     pitch = w["eyeLookUp_L"] + w["eyeLookUp_R"] - w["eyeLookDown_L"] - w["eyeLookDown_R"]
@@ -64,6 +62,21 @@ def test_gaze_follows_the_eyes(tracked_eyes):
     frames = frames[frames >= CALIBRATION_FRAMES]
     assert np.corrcoef(yaw[frames], take.yaw[frames])[0, 1] >= 0.9
     assert np.corrcoef(pitch[frames], take.pitch[frames])[0, 1] >= 0.9
+
+
+# Measured: the keys the eyes do not read (the take moves only the eyes and lids) reach 0.24
+# (browDown_L) in the blinks, 0.19 (browDown_R) between them; before those keys were solved
+# from the landmarks alone, the eye keys' motion not taken off them (core.session): 0.66
+# (browOuterUp_R), 0.88 (browDown_L). Checked with a margin.
+MEASURED_OTHER_KEYS = 0.3
+
+
+def test_blinks_and_gaze_move_no_other_key_as_measured(tracked_eyes):
+    take, weights, _, _ = tracked_eyes
+    others = {name: values[CALIBRATION_FRAMES:] for name, values in weights.items()
+              if not name.startswith("eye")}
+    name = max(others, key=lambda n: np.max(others[n]))
+    assert np.max(others[name]) <= MEASURED_OTHER_KEYS, f"{name} reached {np.max(others[name]):.2f}"
 
 
 def test_a_blink_is_not_read_as_looking_down(tracked_eyes):

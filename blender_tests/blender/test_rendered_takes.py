@@ -24,8 +24,10 @@ OTHER_IDENTITY = 7
 
 # Measured with the tracker model learnt from FaceMesh's points on other ICT identities
 # (scripts/make_tracker_model.py) and the material points beside them (core.material_points;
-# mean correlation over the 17 driven shapes, their mean absolute error): bundled head 0.548,
-# 0.055; identity 7: 0.625, 0.050; the head still: 0.731, 0.043 (before the flow followed the
+# mean correlation over the 17 driven shapes, their mean absolute error): bundled head 0.592,
+# 0.052; identity 7: 0.675, 0.051; the head still: 0.756, 0.045 (before the keys the eyes do not
+# read were solved from the landmarks alone, the eye keys' motion not taken off them
+# (core.session): 0.548, 0.055; 0.633, 0.050; 0.731, 0.043; before the flow followed the
 # frames less their blur, the pull 0.3 per pixel: 0.521, 0.057; 0.600, 0.052; 0.691, 0.044; before
 # the material points' pull to FaceMesh's fit grew with the head's motion, a fixed 0.2 a frame:
 # 0.503, 0.056; 0.570, 0.053;
@@ -34,7 +36,7 @@ OTHER_IDENTITY = 7
 # 0.526, 0.061; 0.634, 0.046; the eyes' rows join the solve). (FaceMesh's points alone:
 # 0.325, 0.056; 0.365, 0.059; 0.517, 0.046. With the model of the located points the learnt one
 # replaced: 0.320, 0.067; 0.343, 0.067.)
-MEASURED_WEIGHTS = {"moving": (0.50, 0.058), "other_identity": (0.58, 0.054), "still": (0.69, 0.047)}
+MEASURED_WEIGHTS = {"moving": (0.55, 0.056), "other_identity": (0.63, 0.054), "still": (0.71, 0.047)}
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll), the fit's
 # learnt rotation bias taken out (core.tracker_model.learn_pose_bias): moving 1.32, 2.88, (1.01,
 # 1.01, 1.00); turning 1.20, 2.80, (1.00, 1.00, 1.02); identity 7: 1.60, 3.64, (1.06, 1.02,
@@ -104,12 +106,14 @@ def test_head_rotation_as_measured(take_name, request):
     assert np.all((slopes >= low) & (slopes <= high)), slopes
 
 
-@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.548, most shapes below 0.8 "
-                                       "(frowns, browOuterUp_L, noseSneer_R -0.07-0.10, pucker 0.40, "
-                                       "cheekPuff 0.50, browDown_R 0.55, browOuterUp_R 0.62, "
-                                       "browInnerUp 0.68, smile_R 0.72, the jaw, browDown_L, "
-                                       "noseSneer_L, the stretches 0.76-0.81), MAE 0.055 "
-                                       "(bundled head, head moving up to 25 deg). The true points "
+@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.592 (0.548 before the keys "
+                                       "the eyes do not read were solved from the landmarks "
+                                       "alone), most shapes below 0.8 (frowns -0.01, 0.19, "
+                                       "browOuterUp_L 0.14, pucker 0.39, noseSneer_R 0.49, "
+                                       "cheekPuff 0.51, browOuterUp_R 0.52, browDown_R 0.66, "
+                                       "noseSneer_L 0.69, smile_R 0.71, browInnerUp 0.72, the "
+                                       "stretches 0.76-0.79), MAE 0.052 (0.055 before; bundled "
+                                       "head, head moving up to 25 deg). The true points "
                                        "keep every shape (0.95, "
                                        "test_the_true_points_keep_every_driven_shape); the material "
                                        "points' true projections in place of their flow give 0.74 "
@@ -157,16 +161,19 @@ def test_the_true_points_keep_every_driven_shape(kind):
 
 
 # Measured on the turning take (a neutral face, its eyes fixed in the head, turning up to 30 deg):
-# the largest weight of any key 0.54 (eyeSquint_L), of the eyes' keys 0.54 (eyeSquint_L): checked
-# with a margin. Before the flow followed the frames less their blur (the pull 0.3 per pixel): 0.56
-# (browDown_L), 0.52. Before the material points' pull grew with the head's motion (a fixed 0.2): 0.58
+# the largest weight of any key 0.52 (eyeSquint_L; of the others 0.52, jawRight, the brows 0.45),
+# of the eyes' keys 0.52 (eyeSquint_L): checked with a margin. Before a pitched eye's lid rows
+# counted less too (eyes.EyeGeometry.facing): 0.54 (eyeSquint_L), 0.54. Before the keys the eyes
+# do not read were solved from the landmarks alone (core.session): 0.60 (browDown_L, answering the
+# eye keys' motion about the eyes), the eyes' keys 0.54. Before the flow followed the frames less
+# their blur (the pull 0.3 per pixel): 0.56 (browDown_L), 0.52. Before the material points' pull grew with the head's motion (a fixed 0.2): 0.58
 # (browDown_L; without the eyes' rows 0.51, jawRight), 0.52. Before the material points' refit carried a
 # turn of their own and refined their depths (core.material_points): 0.64 (mouthLowerDown_L;
 # without the eyes' rows 0.63), the eyes' keys 0.56 (eyeSquint_L; the gaze keys 0.28
 # (eyeLookIn_R), eyeWide_R 0.29, eyeBlink_L 0.24). Before the eyes' frontal reading lost the slide learnt with the head's turn (core.eyes.EyeSlide) and a
 # turned eye's lid rows counted less (eyes.LID_FACING_POWER): 0.71 (eyeSquint_R), the gaze keys
 # 0.48, eyeWide_R 0.45, eyeBlink_L 0.30.
-MEASURED_FALSE_WEIGHT = {"": 0.64, "eye": 0.62}
+MEASURED_FALSE_WEIGHT = {"": 0.57, "eye": 0.57}
 
 
 @pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT), ids=["all keys", "eye keys"])
@@ -176,12 +183,13 @@ def test_a_turning_neutral_face_as_measured(turning, keys):
 
 
 # The same turning take after a wide calibration (three seconds of a neutral face turning over
-# yaw +-30, pitch +-20 deg; the tracker unchanged: docs/method.md §11): 0.51 (eyeSquint_L, an eye
-# key; 0.51 too before the flow followed the frames less their blur and before the pull grew with
+# yaw +-30, pitch +-20 deg; the tracker unchanged: docs/method.md §11): 0.50 (eyeSquint_L, an eye
+# key; 0.51 before a pitched eye's lid rows counted less too; the brows 0.38, 0.45 before the keys
+# the eyes do not read were solved from the landmarks alone; 0.51 too before the flow followed the frames less their blur and before the pull grew with
 # the head's motion), checked with a margin (before the material points' own turn and depths: 0.54
 # (mouthPress_L), the eyes' keys 0.52 (eyeSquint_L); before the eyes' learnt slide: 0.55, 0.52
 # (eyeSquint_R)).
-MEASURED_FALSE_WEIGHT_WIDE = {"": 0.62, "eye": 0.62}
+MEASURED_FALSE_WEIGHT_WIDE = {"": 0.54, "eye": 0.54}
 
 
 @pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT_WIDE), ids=["all keys", "eye keys"])
@@ -191,7 +199,7 @@ def test_a_turning_neutral_face_after_a_wide_calibration_as_measured(turning_wid
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
-                                       "weight 0.54 (eyeSquint_L; FaceMesh's fit alone 0.55, "
+                                       "weight 0.52 (eyeSquint_L; FaceMesh's fit alone 0.55, "
                                        "browDown_L): after the learnt slide the "
                                        "iris model's lids on the turning eyes still spread by "
                                        "0.03-0.04 of the opening (0.07 at the 95th percentile), "

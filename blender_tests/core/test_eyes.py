@@ -106,6 +106,13 @@ def test_an_avatar_without_arkit_eye_keys_gets_no_eye_rows():
     assert weights["eyeBlink_L"] < 1e-6
 
 
+def test_the_rows_name_the_keys_they_read():
+    names = ["jawOpen", "eyeBlink_L", "eyeLookOut_R", "browDown_L", "eyeWide_R", "eyeSquint_L"]
+    targets = eyes.EyeTargets(names, NEUTRAL, key_scale=1.0)
+    assert targets.keys.tolist() == [False, True, True, False, True, True]
+    assert not eyes.EyeTargets(["jawOpen", "smile"], NEUTRAL, key_scale=1.0).keys.any()
+
+
 @pytest.mark.parametrize("turn", [(0, 0, 0), (30, 0, 0), (0, 20, 0), (-25, 15, 10)])
 def test_geometry_brings_a_turned_heads_reading_back_to_frontal(turn):
     """Eyes with known lids and gaze seen on a head turned by `turn` (yxz degrees): the reading
@@ -157,6 +164,18 @@ def test_the_learnt_slide_is_taken_off_the_frontal_reading():
             np.testing.assert_allclose(slide.at(rotation, translation), 0.0, atol=1e-12)
         found = eyes.reading_measures(slid.frontal(reading, rotation, translation, centres))
         np.testing.assert_allclose(found, expected, atol=1e-12)
+
+
+def test_a_pitched_heads_eyes_face_the_camera_less():
+    """Pitched 20 degrees, both eyes are foreshortened along their lids alike (about the cosine
+    of the pitch); their corner lines are not."""
+    from scipy.spatial.transform import Rotation
+    from exclone_addon.core import data
+    from exclone_addon.core.tracking import FRONTAL, Camera
+    geometry = eyes.EyeGeometry(data.canonical_face().vertices, Camera.from_image_size(640, 480))
+    for pitch in (20, -20):
+        facing = geometry.facing(Rotation.from_euler("x", pitch, degrees=True) * FRONTAL)
+        np.testing.assert_allclose(facing, np.cos(np.radians(20)), atol=0.02)
 
 
 def test_a_turned_eyes_lids_count_less():

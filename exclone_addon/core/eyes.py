@@ -65,9 +65,9 @@ LID_CHANGES = (("eyeBlink", -0.45, 0.10), ("eyeWide", 0.30, 0.0), ("eyeSquint", 
 OPEN_FRACTION = 0.8
 # How much a target row counts against the landmarks, per unit of a key's mean landmark norm.
 EYE_TRUST = 30.0
-# A turned eye's lid rows count less, by its facing (EyeReading.facing) to this power: the iris
-# model reads a foreshortened eye's lids worse (the far eye of a turned head, partly behind the
-# nose). The power 4 makes the weight about the square of the eye's width in the image against
+# A turned or pitched eye's lid rows count less, by its facing (EyeReading.facing) to this power:
+# the iris model reads a foreshortened eye's lids worse (the far eye of a turned head, partly
+# behind the nose; a pitched head's eyes along their lids, docs/method.md §10). The power 4 makes the weight about the square of the eye's width in the image against
 # a frontal one's (as conjugate_gaze weighs the gaze): on the rendered turning take (the head up
 # to 30 deg) the far eye's facing reads 0.78 where its width in the image is 0.69 of the frontal.
 # There, after the learnt slide, the far eye's upper lid still read 0.13-0.16 of its opening high
@@ -252,10 +252,16 @@ class EyeGeometry:
 
     def facing(self, rotation):
         """(2,) each eye's corner line's length across the image at this head turn (model ->
-        camera) over its length facing the camera (FRONTAL), at most 1."""
+        camera) over its length facing the camera (FRONTAL), at most 1, times the same of the
+        lids' direction (the head's up axis less its part along the corner line): a turned
+        head foreshortens the eye across, a pitched one along the lids."""
         axes = self._corners[:, 1] - self._corners[:, 0]
-        seen = np.linalg.norm(rotation.apply(axes)[:, :2], axis=1)
-        return np.minimum(seen / np.linalg.norm(FRONTAL.apply(axes)[:, :2], axis=1), 1.0)
+        up = np.array([0.0, 1.0, 0.0]) - axes[:, 1:2] * axes / (axes ** 2).sum(axis=1, keepdims=True)
+        shares = []
+        for directions in (axes, up):
+            seen = np.linalg.norm(rotation.apply(directions)[:, :2], axis=1)
+            shares.append(np.minimum(seen / np.linalg.norm(FRONTAL.apply(directions)[:, :2], axis=1), 1.0))
+        return shares[0] * shares[1]
 
 
 def _newton(residual, start, step=1e-4):
@@ -316,6 +322,10 @@ class EyeTargets:
         self.neutral = neutral
         self._row_weight = np.sqrt(EYE_TRUST * key_scale)
         self._rows = [_eye_rows(names, side) for side in SIDES]
+        # (N,) whether each key is one the rows read (the session solves the others without them)
+        self.keys = np.zeros(len(names), dtype=bool)
+        for row in (row for eye_rows in self._rows for row in eye_rows if row is not None):
+            self.keys |= row != 0
         self._open_gaze = np.zeros((2, 2))
 
     def rows(self, reading):

@@ -9,8 +9,9 @@ shape model fitted to them with head pose, warm-started from the previous frame,
 neutral calibrated over the first frames with a face (core.tracking, §11); after calibration
 the shape parameters refitted with the material points, image points on texture tracked by
 optical flow (core.material_points, §11); One Euro filters on pose, shape and landmarks; then,
-with an avatar, its shape-key weights (core.retarget, §12), the eyes' lids and gaze (core.eyes)
-as further targets of the same bounded solve.
+with an avatar, its shape-key weights (core.retarget, §12): the eye keys with the eyes' lids and
+gaze (core.eyes) as further targets of the same bounded solve, the other keys from the
+landmarks alone.
 """
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
@@ -173,6 +174,8 @@ class FaceTrackingSession:
         self.eye_neutral = None       # the actor's neutral eyes, frontal (eyes.EyeReading)
         self._eye_geometry = None
         self._eye_targets = None
+        self._other_keys = None       # the keys the eyes' rows do not read (indices), if any
+        self._other_solver = None     # and their solve from the landmarks alone
         self._material = None         # the take's material points (after calibration, not stills)
         self._gray = None             # the frame being tracked, grey (None: landmarks given)
         self.take = RecordedTake()
@@ -512,14 +515,26 @@ class FaceTrackingSession:
         exist; after the calibration frame itself); the frame is recorded."""
         start = time.perf_counter()
         displacement = self._fitter.model.shape(params) - self.neutral
-        if reading is not None and self._eye_targets is not None and not self._pending:
-            values = self.solver.solve(displacement, *self._eye_targets.rows(reading))
-        else:
-            values = self.solver.solve(displacement)
+        values = self._solved(displacement, None if self._pending else reading)
         stage_ms["weights"] = 1000 * (time.perf_counter() - start)
         self.take.timestamps.append(float(timestamp))
         self.take.displacements.append(displacement)
         return dict(zip(self.solver.names, values.tolist()))
+
+    def _solved(self, displacement, reading):
+        """(N,) the avatar's weights for a displacement from the neutral (468, 3) and the eyes'
+        frontal reading (None: no eyes' rows)."""
+        if reading is not None and self._eye_targets is not None:
+            values = self.solver.solve(displacement, *self._eye_targets.rows(reading))
+        else:
+            values = self.solver.solve(displacement)
+        if self._other_keys is not None:
+            # the keys the eyes do not read, from the landmarks alone: FaceMesh's points hardly
+            # follow what the eye keys move about the eyes (the rings of points about the
+            # lids), so with the eye keys' motion taken off them the brow keys answer its
+            # negative (docs/method.md §12)
+            values[self._other_keys] = self._other_solver.solve(displacement)
+        return values
 
     def _finish_calibration(self):
         frames = np.array(self._calibration_points)
@@ -543,6 +558,12 @@ class FaceTrackingSession:
             self.solver = WeightSolver(mapped, self.avatar.names)
             self._eye_targets = None if self.eye_neutral is None else eyes.EyeTargets(
                 self.avatar.names, self.eye_neutral, self.solver.scale)
+            self._other_keys = self._other_solver = None
+            if self._eye_targets is not None and 0 < self._eye_targets.keys.sum() < len(mapped):
+                self._other_keys = np.flatnonzero(~self._eye_targets.keys)
+                self._other_solver = WeightSolver(mapped[self._other_keys],
+                                                  [self.avatar.names[j] for j in self._other_keys],
+                                                  scale=self.solver.scale)
 
     def _calibrate_eyes(self, fits):
         """The eyes' neutral: the median of the calibration frames' readings, each brought
