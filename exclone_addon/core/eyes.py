@@ -67,8 +67,9 @@ OPEN_FRACTION = 0.8
 EYE_TRUST = 30.0
 # A turned or pitched eye's lid rows count less, by its facing (EyeReading.facing) to this power:
 # the iris model reads a foreshortened eye's lids worse (the far eye of a turned head, partly
-# behind the nose; a pitched head's eyes along their lids, docs/method.md §10). The power 4 makes the weight about the square of the eye's width in the image against
-# a frontal one's (as conjugate_gaze weighs the gaze): on the rendered turning take (the head up
+# behind the nose; a pitched head's eyes along their lids, docs/method.md §10). The power 4
+# makes the weight about the square of the eye's width in the image against a frontal one's
+# (as conjugate_gaze weighs the gaze): on the rendered turning take (the head up
 # to 30 deg) the far eye's facing reads 0.78 where its width in the image is 0.69 of the frontal.
 # There, after the learnt slide, the far eye's upper lid still read 0.13-0.16 of its opening high
 # at 30 deg (eyeWide_L 0.40, answered by browDown_L 0.86); weighed with power 2: 0.75
@@ -256,11 +257,13 @@ class EyeGeometry:
         lids' direction (the head's up axis less its part along the corner line): a turned
         head foreshortens the eye across, a pitched one along the lids."""
         axes = self._corners[:, 1] - self._corners[:, 0]
-        up = np.array([0.0, 1.0, 0.0]) - axes[:, 1:2] * axes / (axes ** 2).sum(axis=1, keepdims=True)
+        up = np.array([0.0, 1.0, 0.0]) - axes[:, 1:2] * axes / (axes ** 2).sum(axis=1,
+                                                                              keepdims=True)
         shares = []
         for directions in (axes, up):
             seen = np.linalg.norm(rotation.apply(directions)[:, :2], axis=1)
-            shares.append(np.minimum(seen / np.linalg.norm(FRONTAL.apply(directions)[:, :2], axis=1), 1.0))
+            frontal = np.linalg.norm(FRONTAL.apply(directions)[:, :2], axis=1)
+            shares.append(np.minimum(seen / frontal, 1.0))
         return shares[0] * shares[1]
 
 
