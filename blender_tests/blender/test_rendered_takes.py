@@ -24,10 +24,11 @@ OTHER_IDENTITY = 7
 
 # Measured with the tracker model learnt from FaceMesh's points on other ICT identities
 # (scripts/make_tracker_model.py) and the material points beside them (core.material_points;
-# mean correlation over the 17 driven shapes, their mean absolute error): bundled head 0.592,
-# 0.052; identity 7: 0.675, 0.051; the head still: 0.756, 0.045 (before the keys the eyes do not
-# read were solved from the landmarks alone, the eye keys' motion not taken off them
-# (core.session): 0.548, 0.055; 0.633, 0.050; 0.731, 0.043; before the flow followed the
+# mean correlation over the 17 driven shapes, their mean absolute error): bundled head 0.654,
+# 0.051; identity 7: 0.721, 0.049; the head still: 0.768, 0.044 (with only the material points'
+# pull across the head's motion smaller than along it: 0.592, 0.053; 0.674, 0.049; 0.743, 0.043;
+# with only the keys the eyes do not read solved from the landmarks alone: 0.592, 0.052; 0.675,
+# 0.051; 0.756, 0.045; before both: 0.548, 0.055; 0.633, 0.050; 0.731, 0.043; before the flow followed the
 # frames less their blur, the pull 0.3 per pixel: 0.521, 0.057; 0.600, 0.052; 0.691, 0.044; before
 # the material points' pull to FaceMesh's fit grew with the head's motion, a fixed 0.2 a frame:
 # 0.503, 0.056; 0.570, 0.053;
@@ -36,7 +37,7 @@ OTHER_IDENTITY = 7
 # 0.526, 0.061; 0.634, 0.046; the eyes' rows join the solve). (FaceMesh's points alone:
 # 0.325, 0.056; 0.365, 0.059; 0.517, 0.046. With the model of the located points the learnt one
 # replaced: 0.320, 0.067; 0.343, 0.067.)
-MEASURED_WEIGHTS = {"moving": (0.55, 0.056), "other_identity": (0.63, 0.054), "still": (0.71, 0.047)}
+MEASURED_WEIGHTS = {"moving": (0.62, 0.054), "other_identity": (0.69, 0.053), "still": (0.74, 0.047)}
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll), the fit's
 # learnt rotation bias taken out (core.tracker_model.learn_pose_bias): moving 1.32, 2.88, (1.01,
 # 1.01, 1.00); turning 1.20, 2.80, (1.00, 1.00, 1.02); identity 7: 1.60, 3.64, (1.06, 1.02,
@@ -106,13 +107,14 @@ def test_head_rotation_as_measured(take_name, request):
     assert np.all((slopes >= low) & (slopes <= high)), slopes
 
 
-@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.592 (0.548 before the keys "
+@pytest.mark.xfail(strict=True, reason="measured: mean correlation 0.654 (0.548 before the keys "
                                        "the eyes do not read were solved from the landmarks "
-                                       "alone), most shapes below 0.8 (frowns -0.01, 0.19, "
-                                       "browOuterUp_L 0.14, pucker 0.39, noseSneer_R 0.49, "
-                                       "cheekPuff 0.51, browOuterUp_R 0.52, browDown_R 0.66, "
-                                       "noseSneer_L 0.69, smile_R 0.71, browInnerUp 0.72, the "
-                                       "stretches 0.76-0.79), MAE 0.052 (0.055 before; bundled "
+                                       "alone and the material points' pull across the head's "
+                                       "motion was made smaller), shapes below 0.8: frowns "
+                                       "0.23, 0.29, pucker 0.35, browOuterUp 0.50, 0.51, "
+                                       "cheekPuff 0.56, browDown_R 0.61, noseSneer_R 0.65, "
+                                       "smile_R 0.67, noseSneer_L 0.73, jawOpen 0.79; MAE 0.051 "
+                                       "(0.055 before; bundled "
                                        "head, head moving up to 25 deg). The true points "
                                        "keep every shape (0.95, "
                                        "test_the_true_points_keep_every_driven_shape); the material "
@@ -123,9 +125,10 @@ def test_head_rotation_as_measured(take_name, request):
                                        "head still, 0.15-0.3 turned, about the learnt slide's own "
                                        "error; the fit reads them at 0.1-0.4 (browOuterUp_L, "
                                        "noseSneer_R 0.0 turned: FaceMesh's fit alone 0.36), the "
-                                       "material points add 0.19 (0.16 before their flow "
-                                       "followed the frames less their blur). The frowns go "
-                                       "negative as the jaw opens: FaceMesh's "
+                                       "material points added 0.19 before the two changes above "
+                                       "(0.23 with the smaller pull across alone). The frowns "
+                                       "went negative as the jaw opened, before the keys the eyes "
+                                       "do not read were solved apart: FaceMesh's "
                                        "jawOpen is solved as jawOpen plus mouthFrown (0.8-1.0 of "
                                        "jawOpen's weight) and mouthLowerDown")
 def test_weights_reach_the_target(moving):
@@ -161,8 +164,10 @@ def test_the_true_points_keep_every_driven_shape(kind):
 
 
 # Measured on the turning take (a neutral face, its eyes fixed in the head, turning up to 30 deg):
-# the largest weight of any key 0.52 (eyeSquint_L; of the others 0.52, jawRight, the brows 0.45),
-# of the eyes' keys 0.52 (eyeSquint_L): checked with a margin. Before a pitched eye's lid rows
+# the largest weight of any key 0.54 (eyeSquint_L), of the eyes' keys 0.54: checked with a
+# margin. With the material points' pull across the head's motion as large as along it (it is
+# smaller since): 0.52 (eyeSquint_L; of the others 0.52, jawRight, the brows 0.45), of the eyes'
+# keys 0.52 (eyeSquint_L); with only that smaller pull: 0.57 (browDown_L), 0.56. Before a pitched eye's lid rows
 # counted less too (eyes.EyeGeometry.facing): 0.54 (eyeSquint_L), 0.54. Before the keys the eyes
 # do not read were solved from the landmarks alone (core.session): 0.60 (browDown_L, answering the
 # eye keys' motion about the eyes), the eyes' keys 0.54. Before the flow followed the frames less
@@ -173,7 +178,7 @@ def test_the_true_points_keep_every_driven_shape(kind):
 # (eyeLookIn_R), eyeWide_R 0.29, eyeBlink_L 0.24). Before the eyes' frontal reading lost the slide learnt with the head's turn (core.eyes.EyeSlide) and a
 # turned eye's lid rows counted less (eyes.LID_FACING_POWER): 0.71 (eyeSquint_R), the gaze keys
 # 0.48, eyeWide_R 0.45, eyeBlink_L 0.30.
-MEASURED_FALSE_WEIGHT = {"": 0.57, "eye": 0.57}
+MEASURED_FALSE_WEIGHT = {"": 0.58, "eye": 0.58}
 
 
 @pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT), ids=["all keys", "eye keys"])
@@ -183,13 +188,14 @@ def test_a_turning_neutral_face_as_measured(turning, keys):
 
 
 # The same turning take after a wide calibration (three seconds of a neutral face turning over
-# yaw +-30, pitch +-20 deg; the tracker unchanged: docs/method.md §11): 0.50 (eyeSquint_L, an eye
-# key; 0.51 before a pitched eye's lid rows counted less too; the brows 0.38, 0.45 before the keys
+# yaw +-30, pitch +-20 deg; the tracker unchanged: docs/method.md §11): 0.55 (eyeSquint_L, an eye
+# key; 0.50 before the material points' pull across the head's motion was made smaller, 0.56
+# with that alone; 0.51 before a pitched eye's lid rows counted less too; the brows 0.38, 0.45 before the keys
 # the eyes do not read were solved from the landmarks alone; 0.51 too before the flow followed the frames less their blur and before the pull grew with
 # the head's motion), checked with a margin (before the material points' own turn and depths: 0.54
 # (mouthPress_L), the eyes' keys 0.52 (eyeSquint_L); before the eyes' learnt slide: 0.55, 0.52
 # (eyeSquint_R)).
-MEASURED_FALSE_WEIGHT_WIDE = {"": 0.54, "eye": 0.54}
+MEASURED_FALSE_WEIGHT_WIDE = {"": 0.59, "eye": 0.59}
 
 
 @pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT_WIDE), ids=["all keys", "eye keys"])
@@ -199,7 +205,7 @@ def test_a_turning_neutral_face_after_a_wide_calibration_as_measured(turning_wid
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
-                                       "weight 0.52 (eyeSquint_L; FaceMesh's fit alone 0.55, "
+                                       "weight 0.54 (eyeSquint_L; FaceMesh's fit alone 0.55, "
                                        "browDown_L): after the learnt slide the "
                                        "iris model's lids on the turning eyes still spread by "
                                        "0.03-0.04 of the opening (0.07 at the 95th percentile), "
