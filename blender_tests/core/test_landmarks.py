@@ -18,6 +18,7 @@ from exclone_addon.core.landmarks import HEURISTIC, NAMES, automatic_landmarks
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import read_obj
 from exclone_addon.core.orientation import FaceFrame, face_frame
+from exclone_addon.core.registration import similarity_transform
 
 DEMO_HEAD = data.DEMO_HEAD_FILE
 
@@ -132,6 +133,46 @@ def test_nose_tip_on_a_face_whose_lower_lip_reaches_further_forward():
     for name in ROBUST:
         error = np.linalg.norm(vertices[found[name]] - vertices[truth[name]]) / frame.diagonal
         assert error < 0.03, f"{name} {100 * error:.1f}% of the diagonal from the identity's own"
+
+
+# Whole ICT identity heads (the library's mesh, eyes, mouth interior and neck, with an
+# identity's deltas): the frame's forward should be the library head's (the identities share its
+# pose to 2-3 degrees) within what their face regions reach (1-8 degrees), and the nose tip the
+# library's tip vertex (x the diagonal).
+WHOLE_HEAD_FORWARD_BAR, WHOLE_HEAD_TIP_BAR = 5.0, 0.02
+
+
+@pytest.mark.skipif(not IDENTITIES.exists(),
+                    reason=f"needs the shared ICT identity model ({IDENTITIES})")
+@pytest.mark.xfail(strict=True, reason=(
+    "measured: forward 18.4 / 22.9 degrees off, the nose tip on the lower lip 10.3% / 9.3% of "
+    "the diagonal off (seeds 6 / 9): docs/method.md §3's refinement (the mean normal within a "
+    "quarter of the diagonal of the tip) takes in the mouth socket, the chin's underside and the "
+    "neck, and the tip's surroundings (§4) the mouth socket behind the lips"))
+@pytest.mark.parametrize("seed", [6, 9])
+def test_frame_and_nose_tip_on_a_whole_identity_head(seed):
+    """A whole ICT identity head (weights drawn as test_unseen_identity draws them), tilted,
+    scaled and moved: its frame's forward is the library head's frame's (moved alike), its nose
+    tip the library's nose tip vertex."""
+    lib = load_library()
+    with np.load(IDENTITIES) as model:
+        modes = model["deltas"].astype(np.float64)
+    head = lib.mesh.vertices + np.tensordot(
+        np.random.default_rng(seed).standard_normal(len(modes)), modes, 1)
+    triangles = lib.mesh.triangles()
+    library = face_frame(lib.mesh.vertices, triangles)
+    vertices = moved(head, "front", 20.0, seed)
+    turn = similarity_transform(head, vertices)[0]
+    frame = face_frame(vertices, triangles)
+    off = np.degrees(np.arccos(np.clip(frame.rotation[:, 2] @ turn @ library.rotation[:, 2],
+                                       -1, 1)))
+    found = dict(zip(*automatic_landmarks(vertices, triangles, frame)))
+    tip = dict(zip(*automatic_landmarks(lib.mesh.vertices, triangles, library)))["nose_tip"]
+    error = np.linalg.norm(vertices[found["nose_tip"]] - vertices[tip]) / frame.diagonal
+    print(f"\n[seed {seed}] forward {off:.1f} degrees off, nose tip {100 * error:.1f}% of the "
+          "diagonal off")
+    assert off < WHOLE_HEAD_FORWARD_BAR, f"forward {off:.1f} degrees off"
+    assert error < WHOLE_HEAD_TIP_BAR, f"nose tip {100 * error:.1f}% of the diagonal off"
 
 
 def test_face_mask_has_no_head_landmarks():
