@@ -457,6 +457,7 @@ class FaceTrackingSession:
         stage_ms["eyes"] = 1000 * (time.perf_counter() - start)
         if self._pending:
             fit = self._calibration_frame(observed, reading, fit, stage_ms)
+            reading = None       # not brought frontal: the eyes' rows join from the next frame
             pose = self._shown_pose(replace(fit, rotation=self._tracker_model.unbiased_rotation(fit)),
                                     points, timestamp)
         head_rotation = weights = None
