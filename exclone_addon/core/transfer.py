@@ -32,6 +32,7 @@ from functools import cached_property
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.linalg import splu
+from scipy.spatial.transform import Rotation
 
 try:
     import cholespy
@@ -39,9 +40,9 @@ except ImportError:     # an install without the bundled wheel: SuperLU serves a
     cholespy = None
 
 from . import deformation
-from .expression_measures import excess_stretches
+from .expression_measures import excess_stretches, turned_over
 from .errors import ExCloneError
-from .mesh import unique_edges, vertex_parts
+from .mesh import triangle_normals, unique_edges, vertex_parts
 from .proximity import components_dot
 
 
@@ -128,6 +129,16 @@ BOUND_ROUNDS = 8           # the child's mouth-open onto the ICT neutral needed 
 # edges, 2.8-3.6 before the bound, take the whole cap as before.
 BOUND_FADE = 0.25
 GIVING_WAY = 0.99          # at 50k vertices one edge crept 2.5674 -> 2.5666 over four rounds
+# A target triangle an expression turns over (expression_measures.turned_over) where neither its
+# image on the source nor the images of the triangles beside it turn over is the transfer's own
+# tangle, not the source's motion (the library's jawOpen turns the inner lower lip at its
+# corners by 80-110 degrees; the target triangles whose goals follow it land a few degrees either
+# side of 90). Its goal, its solved gradient turned back to its image's turn, weighs
+# TANGLED_WEIGHT times its neighbours' (their solved gradients) in a solve of its corners and a
+# ring of triangles around them, the rest held; at most UNTANGLE_ROUNDS rounds (docs/method.md
+# §8, "Untangled"). With the weight 1 a tangle on the male body and one on the old woman's stayed.
+TANGLED_WEIGHT = 4.0
+UNTANGLE_ROUNDS = 4
 
 
 class Transfer:
@@ -329,6 +340,11 @@ class CorrespondedTransfer:
         for block in blocks(len(deltas)):
             out[block] = self._solved_block(deltas[block])
         self._stretch_bounded(out, deltas)
+        untangled = self._untangled(out, deltas)
+        if len(untangled):      # the local solves may stretch an edge past the bound again
+            changed = out[untangled]
+            self._stretch_bounded(changed, deltas[untangled])
+            out[untangled] = changed
         if correction is not None:
             for block in blocks(len(deltas)):
                 out[block] = correction(out[block], deltas[block])
@@ -426,6 +442,9 @@ class CorrespondedTransfer:
             (np.tile([-1.0, 1.0], k), (np.repeat(np.arange(k), 2), self.bound_edges.ravel())),
             shape=(k, n))
         self.image_edge_difference = (edge_difference @ image_sampling).tocsr()
+        self.image_sampling = image_sampling
+        self.imaged_triangles = has_image[triangles].all(axis=1)
+        self.corner_ids = np.ascontiguousarray(triangles.T)            # (3, T) for _turned
         self.rest_edges = edge_difference @ self.system.rest_vertices                 # (k, 3)
         self.rest_lengths = np.linalg.norm(self.rest_edges, axis=1)
         # the length past which an edge may pass STRETCH_BOUND, less a margin far beyond rounding
@@ -483,6 +502,124 @@ class CorrespondedTransfer:
             if not (worst < GIVING_WAY * was)[was > STRETCH_BOUND].any():
                 break
             region = (self.vertex_triangles @ around.astype(np.float64)) > 0
+
+    @cached_property
+    def _turn_references(self):
+        """((T, 3) the target triangles' rest normals, (n, 3) the source at each target vertex's
+        closest point (the bound's images), (T, 3) those images' rest normals, (T x T) the
+        triangles beside each other): what _untangled needs, made when first needed."""
+        triangles = self.system.triangles
+        image_rest = self.image_sampling @ self.source_rest
+        return (triangle_normals(self.system.rest_vertices, triangles), image_rest,
+                triangle_normals(image_rest, triangles), deformation.triangle_adjacency(triangles))
+
+    def _untangled(self, out, deltas):
+        """out (E, n, 3), the displacements of source deltas (E, n_s, 3), with each expression's
+        tangles undone (TANGLED_WEIGHT); returns the ids of the expressions changed."""
+        changed = []
+        for block in blocks(len(out)):
+            for expression, turned in zip(range(block.start, block.stop), self._turned(out[block])):
+                if self._untangle_expression(out[expression], deltas[expression], turned):
+                    changed.append(expression)
+        return np.asarray(changed, dtype=np.int64)
+
+    def _turned(self, displacements):
+        """[(k,) per expression]: the imaged target triangles displacements (B, n, 3) turn over,
+        their moved normals made coordinate first (as _images: several times faster than
+        gathering (T, 3, 3) corners per expression)."""
+        positions = np.ascontiguousarray(np.transpose(displacements, (2, 1, 0)))   # (3, n, B)
+        positions += self.system.rest_vertices.T[:, :, None]
+        first, second, third = self.corner_ids
+        origin = np.take(positions, first, axis=1)
+        ends = [np.take(positions, corner, axis=1) - origin for corner in (second, third)]
+        normals = np.stack([ends[0][(k + 1) % 3] * ends[1][(k + 2) % 3] -
+                            ends[0][(k + 2) % 3] * ends[1][(k + 1) % 3] for k in range(3)],
+                           axis=-1)                                                  # (T, B, 3)
+        rest_normals = self._turn_references[0][:, None]
+        over = turned_over(rest_normals, normals) & self.imaged_triangles[:, None]
+        return [np.flatnonzero(column) for column in over.T]
+
+    def _untangle_expression(self, displacements, delta, turned):
+        """displacements (n, 3) of source delta (n_s, 3) with their tangles undone, round by
+        round (_untangle); turned: the imaged triangles they turn over. Whether any was."""
+        triangles, rest = self.system.triangles, self.system.rest_vertices
+        rest_normals = self._turn_references[0]
+        untangled = False
+        for _ in range(UNTANGLE_ROUNDS):
+            tangled, image_turn = self._tangles(turned, delta)
+            if not len(tangled):
+                break
+            touched = self._untangle(displacements, tangled, image_turn)
+            untangled = True
+            # only the triangles the solve moved can have turned over or back
+            touched = touched[self.imaged_triangles[touched]]
+            turned = np.union1d(np.setdiff1d(turned, touched), touched[turned_over(
+                rest_normals[touched],
+                triangle_normals(rest + displacements, triangles[touched], False))])
+        return untangled
+
+    def _tangles(self, turned, delta):
+        """(the tangles among imaged target triangles turned (k,) that source delta (n_s, 3)
+        turns over: those whose images turn over neither themselves nor beside them, (t,)
+        their images' turns (radians))."""
+        if not len(turned):
+            return turned, np.zeros(0)
+        _, image_rest, image_normals, beside = self._turn_references
+        near = beside[turned]
+        seen = np.union1d(turned, near.indices)             # the turned and those beside them
+        corners = self.system.triangles[seen]
+        vertices, at = np.unique(corners, return_inverse=True)
+        moved = image_rest[vertices] + self.image_sampling[vertices] @ delta
+        image_moved = triangle_normals(moved, at.reshape(corners.shape))
+        turning = np.zeros(len(self.system.triangles), dtype=bool)
+        turning[seen] = self.imaged_triangles[seen] & turned_over(image_normals[seen],
+                                                                  image_moved)
+        own = ~turning[turned] & ~(near @ turning.astype(np.float64) > 0)
+        rows = np.searchsorted(seen, turned[own])
+        return turned[own], _angles(image_normals[turned[own]], image_moved[rows])
+
+    def _untangle(self, displacements, tangled, image_turn):
+        """displacements (n, 3) with the corners of target triangles tangled (k,) and a ring of
+        triangles around them solved again: every triangle they touch keeps its solved gradient
+        as its goal, except the tangled ones, whose solved gradients turn back to their images'
+        turns image_turn (k,) and weigh TANGLED_WEIGHT. Fixed vertices and the rest stay.
+        Returns the triangles the solve may have moved (those touching what it solved)."""
+        triangles, rest = self.system.triangles, self.system.rest_vertices
+        region = np.zeros(self.system.n, dtype=bool)
+        region[triangles[tangled]] = True
+        around = (self.vertex_triangles.T @ region.astype(np.float64)) > 0
+        region = (self.vertex_triangles @ around.astype(np.float64)) > 0
+        region[self.system.fixed] = False
+        inside = np.flatnonzero(region)
+        touching = np.flatnonzero((self.vertex_triangles.T @ region.astype(np.float64)) > 0)
+        if not len(inside):
+            return touching
+        # the reduced operator whatever the system's formulation: the displacements hold no
+        # 4th vertices
+        gradient = deformation.gradient_operator(rest, triangles[touching])[0].tocsc()
+        goals = (gradient @ (rest + displacements)).reshape(len(touching), 3, 3)  # F^T blocks
+        at = np.searchsorted(touching, tangled)
+        rest_normals = self._turn_references[0][tangled]
+        normals = triangle_normals(rest + displacements, triangles[tangled])
+        axes = np.cross(normals, rest_normals)
+        lengths = np.linalg.norm(axes, axis=1, keepdims=True)
+        axes = np.divide(axes, lengths, out=np.zeros_like(axes), where=lengths > 0)
+        back = Rotation.from_rotvec(
+            axes * (_angles(normals, rest_normals) - image_turn)[:, None]).as_matrix()
+        goals[at] = goals[at] @ np.transpose(back, (0, 2, 1))                  # (R F)^T
+        weights = np.ones(len(touching))
+        weights[at] = TANGLED_WEIGHT
+        weights = np.repeat(weights, 3)
+        held = displacements.copy()
+        held[inside] = 0.0
+        inner = gradient[:, inside]
+        normal = (inner.T @ sp.diags(weights) @ inner).tocsc()
+        # the whisper of the system's normal matrix: a region that is a whole part stays definite
+        normal += 1e-10 * normal.diagonal().mean() * sp.identity(len(inside), format="csc")
+        _, solve = factorised(normal)
+        target = goals.reshape(-1, 3) - gradient @ (rest + held)
+        displacements[inside] = solve(inner.T @ (weights[:, None] * target))
+        return touching
 
     def _capping_changes(self, deltas, ids, share):
         """What moving the goals of covered target triangles ids (F,) the share (0-1] of the way
@@ -686,6 +823,11 @@ def _squared_lengths(rest, moved):
         else:
             squared += move
     return squared
+
+
+def _angles(first, second):
+    """(k,) the angles (radians) between unit vectors first and second (k, 3)."""
+    return np.arccos(np.clip(np.einsum("ki,ki->k", first, second), -1.0, 1.0))
 
 
 def _row_largest(values):
