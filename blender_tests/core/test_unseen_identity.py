@@ -9,7 +9,9 @@ belongs on the target (the identity's own vertex, moved) and every expression's 
 - correspondence error: each registered source vertex against its true place, / the target's
   bounding-box diagonal: mean and 95th percentile over the face region;
 - transfer error: ||clone - truth||_F / ||truth||_F, averaged over the measurable expressions,
-  against the same engine's from the exact registration (cloning.fit_registered).
+  against the same engine's from the exact registration (cloning.fit_registered);
+- the blinks (issue #10 item 1, core.expression_measures): each eyeBlink's remaining gap, a share
+  of the eye's open height, on its own side, and the other eye's.
 
 The issue's bars are kept as strict xfails carrying the measured figures; what is reached is
 asserted with a small margin (seeds 1 and 2: two faces, so the figures are not one face's).
@@ -20,6 +22,7 @@ import pytest
 from blender_tests.helpers import ground_truth as gt
 from blender_tests.helpers.paths import SHARED_DATA
 from exclone_addon.core.cloning import clone_expressions, fit_registered, transfer_expressions
+from exclone_addon.core.expression_measures import BLINKS, measure_clone
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import PolyMesh, diagonal
 
@@ -32,12 +35,23 @@ pytestmark = pytest.mark.skipif(not IDENTITIES.exists(),
 # transfer error against the exact registration's.
 MEAN_BAR, P95_BAR, RATIO_BAR = 0.003, 0.008, 1.3
 
-# Reached (measured in both venvs, numpy 1.26 and 2; the transfer error's ratio moved between
-# 1.72x and 1.80x on seed 1 with the eyelid rims' changes), checked with a 10% margin:
+# Reached (measured in both venvs, numpy 1.26 and 2), checked with a 10% margin:
 # seed -> (mean, 95th percentile, transfer error / exact registration's, the same through
 # fit_registered from the engine's registration: its landmarks, so its eyelid rims, left out).
-REACHED = {1: (0.0058, 0.0168, 1.80, 1.79), 2: (0.0117, 0.0302, 2.89, 1.79)}
+# Seed 1's transfer error ratio was 1.72x-1.80x while its right eye's lids were not found (its
+# automatic eye corners lie on the cheek, 3-5% of the diagonal off) and its left eye's only over
+# the inner half: with both eyes' rims its lids close as the source's do (2.98x), as seed 2's
+# did already (2.89x). The truth here is the library's deltas added to the identity's face,
+# whose blinks leave 32-44% of these eyes' open height: the rims close them to 10-12%, and
+# eyeBlink, eyeWide and eyeLook* read the difference as error.
+REACHED = {1: (0.0058, 0.0168, 2.98, 1.79), 2: (0.0117, 0.0302, 2.89, 1.79)}
 MARGIN = 1.1
+# The blinks' remaining gap (x the open height) on the closing eye, reached (seed 1's right eye
+# was not measured and its left read 0.375 over the inner half of the opening alone), and the
+# issue's bar; the other eye stays open (its gap at least OTHER_OPEN).
+BLINK_REACHED = {1: {"eyeBlink_L": 0.121, "eyeBlink_R": 0.108},
+                 2: {"eyeBlink_L": 0.102, "eyeBlink_R": 0.115}}
+BLINK_BAR, OTHER_OPEN = 0.1, 0.95
 
 
 @pytest.fixture(scope="module")
@@ -72,15 +86,20 @@ def identity(request, library):
     engine = float(np.nanmean(gt.relative_error(clone.deltas, truth)))
     best = float(np.nanmean(gt.relative_error(exact_clone.deltas, truth)))
     registration = float(np.nanmean(gt.relative_error(registration_only.deltas, truth)))
+    measures = measure_clone(target, clone, source=source, source_deltas=deltas)
     figures = {"seed": seed, "mean": float(error.mean()),
                "p95": float(np.quantile(error, 0.95)), "ratio": engine / best,
-               "registration_ratio": registration / best}
+               "registration_ratio": registration / best,
+               "blinks": {name: (measures[name][f"eyelid_gap_{closing}"],
+                                 measures[name][f"eyelid_gap_{other}"])
+                          for name, (closing, other) in BLINKS.items()}}
     figures["text"] = (f"seed {seed}: correspondence mean {100 * figures['mean']:.2f}%, "
                        f"95th percentile {100 * figures['p95']:.2f}% of the diagonal; transfer "
                        f"error {engine:.3f} against {best:.3f} from the exact registration "
                        f"({figures['ratio']:.2f}x; the registration alone "
                        f"{figures['registration_ratio']:.2f}x); "
-                       f"{clone.quality['landmark_count']} landmarks")
+                       f"{clone.quality['landmark_count']} landmarks; blinks (closing eye's gap, "
+                       f"the other's) {figures['blinks']}")
     return figures
 
 
@@ -92,6 +111,23 @@ def test_the_registration_reaches_what_it_reached(identity):
     assert identity["registration_ratio"] <= MARGIN * registration_ratio, identity["text"]
 
 
+def test_both_blinks_are_measured_and_close(identity):
+    for name, (gap, other) in identity["blinks"].items():
+        assert gap is not None and other is not None, identity["text"]
+        assert gap <= MARGIN * BLINK_REACHED[identity["seed"]][name], identity["text"]
+        assert other >= OTHER_OPEN, identity["text"]
+
+
+@pytest.mark.xfail(strict=True, reason="measured: eyeBlink_L / eyeBlink_R leave 0.121 / 0.108 "
+                                       "(seed 1), 0.102 / 0.115 (seed 2) of the open height at "
+                                       "the inner station (0.2 of the width), where the "
+                                       "source's own blinks leave 0.097 / 0.072 of its open "
+                                       "height: the rims close the lids as far as the source's "
+                                       "do, station by station, and a little short of that")
+def test_blinks_meet_the_bar(identity):
+    assert all(gap <= BLINK_BAR for gap, _ in identity["blinks"].values()), identity["text"]
+
+
 @pytest.mark.xfail(strict=True, reason="measured: mean 0.58% / 1.17%, 95th percentile 1.68% / "
                                        "3.02% (seeds 1 / 2): the ears and the neck slide along "
                                        "the surface by 1-4%, the face itself by 0.4-0.8%")
@@ -99,10 +135,11 @@ def test_correspondence_meets_the_bars(identity):
     assert identity["mean"] <= MEAN_BAR and identity["p95"] <= P95_BAR, identity["text"]
 
 
-@pytest.mark.xfail(strict=True, reason="measured: 1.72x / 2.89x the exact registration's error "
+@pytest.mark.xfail(strict=True, reason="measured: 2.98x / 2.89x the exact registration's error "
                                        "(seeds 1 / 2); the same registrations through "
                                        "fit_registered (no landmarks, so no eyelid rims) give "
-                                       "1.79x / 1.79x: the rest of seed 2's is in the eye "
-                                       "expressions after the eyelid rims")
+                                       "1.79x / 1.79x: the rest is in the eye expressions after "
+                                       "the eyelid rims, which close the lids further than the "
+                                       "truth's added deltas do")
 def test_transfer_error_is_near_the_exact_registrations(identity):
     assert identity["ratio"] <= RATIO_BAR, identity["text"]

@@ -75,6 +75,12 @@ OFF_EDGE = 0.04
 # known case and its ICT source 0.74-0.92. Then, or where the landmarks' lids read closed at rest,
 # the corners are the ends of the opening seen from the front (_opening_ends).
 THROUGH = 0.5
+# Where no opening is seen in the eye's view, it is looked for in a view this many times the
+# corners' distance across (and where the opening runs out of the view, in one that wide around
+# the part seen); the ends are looked for in at most LOOKS views, each centred on the last one's
+# ends, until the whole opening is in the eye's view.
+WIDE_VIEW = 6.0
+LOOKS = 5
 # The lids are looked for within this far of the corners' line, x the corners' distance.
 EYE_REACH = 0.35
 # An edge's image on the source shorter than this share of the edge has collapsed (both ends on
@@ -128,20 +134,21 @@ class _Opening:
         return (points - self.first) @ self.forward - self.station(points) * self.sink
 
 
-def _eye_view(vertices, triangles, opening):
-    """The eye seen from the front (face_render, orthographic along the face's forward):
+def _eye_view(vertices, triangles, opening, width=VIEW_WIDTH):
+    """The eye seen from the front (face_render, orthographic along the face's forward), `width`
+    x its width across:
     ((P * P, 3) each pixel's ray origin, row by row, (P, P) depth of each pixel along forward
     (-inf where no surface), (P, P, 3) the surface point seen, (P, P) its triangle (-1 for
     none)). Only the triangles within VIEW_DEPTH
     eye widths behind the corners are drawn: what lies further back (the back of the head seen
     through a hole) reads as the opening all the same, and costs most of the drawing."""
     centre = opening.first + 0.5 * opening.width * opening.along + 0.5 * opening.rise * opening.up
-    camera = Camera.looking(centre, opening.forward, opening.up, VIEW_WIDTH * opening.width,
+    camera = Camera.looking(centre, opening.forward, opening.up, width * opening.width,
                             VIEW_PIXELS)
     near = (vertices - centre) @ opening.forward > -VIEW_DEPTH * opening.width
     # nor those wholly beyond one side of the image (a pixel's margin): they cover no pixel
     # centre, but their projection and pixel boxes were most of a dense head's drawing
-    half = 0.5 * VIEW_WIDTH * opening.width + camera.pixel_size
+    half = 0.5 * width * opening.width + camera.pixel_size
     across = [(vertices - centre) @ axis / half for axis in camera.axes[:2]]     # right, up
     outside = np.any([np.all(ends > 1, axis=1) | np.all(ends < -1, axis=1)
                       for ends in (side[triangles] for side in across)], axis=0)
@@ -149,7 +156,7 @@ def _eye_view(vertices, triangles, opening):
     seen = render(vertices, triangles[drawn], camera, shaded=False)     # what is seen, not how
     pixels = np.stack(np.meshgrid(np.arange(VIEW_PIXELS), np.arange(VIEW_PIXELS)), axis=-1)
     points, triangle = seen.surface_points(pixels.reshape(-1, 2))
-    triangle = np.where(triangle >= 0, drawn[triangle], -1)
+    triangle[triangle >= 0] = drawn[triangle[triangle >= 0]]
     depth = np.where(triangle >= 0, (points - centre) @ opening.forward, -np.inf)
     shape = (VIEW_PIXELS, VIEW_PIXELS)
     return (camera.ray_origins(pixels.reshape(-1, 2)), depth.reshape(shape),
@@ -239,13 +246,15 @@ def _seen_margin(vertices, triangles, opening):
     return upper, lower, edges, through, "seen from the front"
 
 
-def _opening_ends(vertices, triangles, opening):
-    """(2, 3) the ends of the eye's opening as seen from the front (the first and the second
-    corner's side), or None where none is seen: the connected stretch of the view with no surface
-    or one more than LID_DEPTH x the eye's width behind the corners' line (the hole or the socket
-    behind the lids) that covers most of the corners' band, its furthest pixels either way along
-    the opening (their middle, within a pixel), at the depth of the corners' line."""
-    lines, depth, points, triangle = _eye_view(vertices, triangles, opening)
+def _opening_ends(vertices, triangles, opening, width=VIEW_WIDTH):
+    """((2, 3) the ends of the eye's opening as seen from the front (the first and the second
+    corner's side), whether the whole opening was in view), or None where none is seen: the
+    connected stretch of a view `width` x the eye's width across with no surface or one more than
+    LID_DEPTH x the eye's width behind the corners' line (the hole or the socket behind the
+    lids) that covers most of the corners' band (where none does, of those wholly in view, the
+    one nearest the corners' middle), its furthest pixels either way along the opening
+    (their middle, within a pixel), at the depth of the corners' line."""
+    lines, depth, points, triangle = _eye_view(vertices, triangles, opening, width)
     stations = opening.station(lines)
     behind = np.full(len(lines), True)
     seen = triangle.ravel() >= 0
@@ -255,13 +264,28 @@ def _opening_ends(vertices, triangles, opening):
     band = (stations >= 0) & (stations <= 1) & \
         (np.abs(opening.height(lines)) <= EYE_REACH * opening.width)
     covered = np.bincount(labels[band], minlength=count + 1)[1:]
-    if not covered.any():
+    border = np.zeros((VIEW_PIXELS, VIEW_PIXELS), dtype=bool)
+    border[[0, -1]], border[:, [0, -1]] = True, True
+    cut = np.bincount(labels[border.ravel()], minlength=count + 1)[1:] > 0
+    if covered.any():
+        label = 1 + np.argmax(covered)
+    elif not cut.all():
+        # the corners miss the opening altogether (landmarks on the cheek): the stretch wholly in
+        # view nearest their middle (what lies beyond the surface's outline reaches the view's
+        # edge)
+        middle = np.array([0.5, 0.0])
+        apart = np.linalg.norm(np.column_stack([stations, opening.height(lines) / opening.width])
+                               - middle, axis=1)
+        nearest = ndimage.minimum(apart, labels, np.arange(1, count + 1))
+        label = 1 + np.argmin(np.where(cut, np.inf, nearest))
+    else:
         return None
-    hole = labels == 1 + np.argmax(covered)
-    step = VIEW_WIDTH / VIEW_PIXELS            # a pixel, x the eye's width
+    hole = labels == label
+    step = width / VIEW_PIXELS            # a pixel, x the eye's width
     ends = [lines[hole & (stations <= stations[hole].min() + step)].mean(axis=0),
             lines[hole & (stations >= stations[hole].max() - step)].mean(axis=0)]
-    return np.stack([end - opening.depth(end[None])[0] * opening.forward for end in ends])
+    return np.stack([end - opening.depth(end[None])[0] * opening.forward for end in ends]), \
+        not cut[label - 1]
 
 
 def _visible_edge(ids, opening, vertices, sign):
@@ -310,12 +334,20 @@ class _Lids:
     def __init__(self, vertices, triangles, inner, outer, frame):
         self._find(vertices, triangles, _Opening(inner, outer, frame))
         if self.through < THROUGH or self.rest is None or np.any(self.rest <= 0):
-            opening = self.opening
-            for _ in range(2):      # twice: the second view is centred on the opening
-                ends = _opening_ends(vertices, triangles, opening)
-                if ends is None:
+            opening, width = self.opening, VIEW_WIDTH
+            # at least twice (the second view is centred on the opening), and on until the whole
+            # opening is in the eye's view: corners well off it see none or a part of it at
+            # first, and a wide view finds it
+            for look in range(LOOKS):
+                found = _opening_ends(vertices, triangles, opening, width)
+                if found is None and width == WIDE_VIEW:
                     return
-                opening = _Opening(*ends, frame)
+                if found is not None:
+                    ends, whole = found
+                    opening = _Opening(*ends, frame)
+                    if whole and width == VIEW_WIDTH and look >= 1:
+                        break
+                width = VIEW_WIDTH if found is not None and found[1] else WIDE_VIEW
             found = dict(vars(self))
             self._find(vertices, triangles, opening)
             if self.rest is None or np.any(self.rest <= 0):      # the ends read no better
