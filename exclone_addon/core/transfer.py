@@ -174,9 +174,7 @@ class Transfer:
         regularisation that keeps the per-part translations definite (they are set explicitly
         afterwards, see the module docstring). Kept: the rims' correction adds to it."""
         normal = (self.grad.T @ sp.diags(np.repeat(self.row_weight, 3)) @ self.grad).tocsc()
-        normal = normal[self.free][:, self.free]
-        eps = 1e-10 * normal.diagonal().mean()
-        return (normal + eps * sp.identity(normal.shape[0], format="csc")).tocsc()
+        return whispered(normal[self.free][:, self.free])
 
     def _constant_rhs(self, vertices, triangles, formulation):
         """(N, 3) the share of the right-hand side no expression changes: the identity on
@@ -613,10 +611,8 @@ class CorrespondedTransfer:
         held = displacements.copy()
         held[inside] = 0.0
         inner = gradient[:, inside]
-        normal = (inner.T @ sp.diags(weights) @ inner).tocsc()
-        # the whisper of the system's normal matrix: a region that is a whole part stays definite
-        normal += 1e-10 * normal.diagonal().mean() * sp.identity(len(inside), format="csc")
-        _, solve = factorised(normal)
+        # whispered as the system's normal matrix: a region that is a whole part stays definite
+        _, solve = factorised(whispered((inner.T @ sp.diags(weights) @ inner).tocsc()))
         target = goals.reshape(-1, 3) - gradient @ (rest + held)
         displacements[inside] = solve(inner.T @ (weights[:, None] * target))
         return touching
@@ -823,6 +819,13 @@ def _squared_lengths(rest, moved):
         else:
             squared += move
     return squared
+
+
+def whispered(normal):
+    """A sparse normal matrix with a whisper of regularisation (1e-10 of its mean diagonal):
+    definite where a whole part's translation is free."""
+    eps = 1e-10 * normal.diagonal().mean()
+    return (normal + eps * sp.identity(normal.shape[0], format="csc")).tocsc()
 
 
 def _angles(first, second):
