@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 from . import data
 from .errors import ExCloneError
 from .mesh import outward_sign, vertex_normals, vertex_parts
-from .orientation import PROTRUSION_RADIUS, face_frame, stand_out
+from .orientation import face_frame
 
 HEURISTIC = (
     "nose_tip", "head_top", "ear_tip_left", "ear_tip_right", "nose_bridge", "alar_left",
@@ -38,15 +38,6 @@ NAMES = HEURISTIC + tuple(TEMPLATE_IBUG)
 NORMAL_PLACED = ("jaw_left", "jaw_right")
 # The heuristic points that carry the template's: the ones that stay put when the face turns
 # (the crown, the back of the head and the alar creases slide along flat or shallow shapes).
-# The nose tip (x the diagonal): midline vertices within TIP_DEPTH of the front-most are its
-# candidates, each measured by how far it stands out of the surface around it (the face frame's
-# orientation.stand_out); the tip is the front-most vertex within TIP_BUMP of the one that stands
-# out most (the tip of that bump, not a point on its slope): wide enough for a coarse face's nose
-# (the 468-point canonical face's front-most nose vertex lies 2.6% of its diagonal from the one
-# that stands out most; with 2% the tracker's located points moved by up to 2.3 cm), far short
-# of the lower lip.
-TIP_DEPTH, TIP_BUMP = 0.03, 0.04
-TIP_SAMPLES = 1000
 RBF_SOURCES = ("nose_tip", "nose_bridge", "subnasal", "upper_lip", "lower_lip",
                "eye_inner_left", "eye_inner_right", "eye_outer_left", "eye_outer_right",
                "ear_tip_left", "ear_tip_right")
@@ -241,22 +232,11 @@ def heuristic_landmarks(vertices, triangles, frame=None, parts=None, nose_tip=No
 
 
 def _nose_tip(q, used, diag):
-    """The nose tip and the vertices near the midline. The tip is the front-most vertex of the
-    midline's front part that stands out of its surroundings the most: on some faces the lower
-    lip or the chin reaches further forward than the nose, but the nose stands out of its
-    surroundings (the cheeks lie a nose's depth behind it) more."""
+    """The front-most vertex near the midline, and the vertices near the midline."""
     near_mid = used[np.abs(q[used, 0]) < 0.03 * diag]
     if not len(near_mid):
         raise _not_found("nose tip (no surface near its symmetry plane)")
-    front = near_mid[q[near_mid, 2] > q[near_mid, 2].max() - TIP_DEPTH * diag]
-    # measured on up to TIP_SAMPLES of each (a dense head has thousands): only the bump counts
-    surface = q[used[::max(1, len(used) // TIP_SAMPLES)]]
-    candidates = front[::max(1, len(front) // TIP_SAMPLES)]
-    standing_out = stand_out(q[candidates, 2], surface[:, 2], cKDTree(surface), q[candidates],
-                             PROTRUSION_RADIUS * diag)
-    best = q[candidates[np.argmax(standing_out)]]
-    bump = front[np.linalg.norm(q[front] - best, axis=1) < TIP_BUMP * diag]
-    return bump[np.argmax(q[bump, 2])], near_mid
+    return near_mid[np.argmax(q[near_mid, 2])], near_mid
 
 
 def _head_extremes(q, used, near_mid, tip, height, diag):

@@ -26,9 +26,6 @@ from .mesh import boundary_vertices, diagonal, triangle_areas, triangle_normals
 from .proximity import TriangleSurface
 
 _MANUAL = "place the landmarks by hand (or give --landmarks)"
-# How far around a point (x the face's size) its surroundings reach when measuring how far it
-# stands out of them: about a nose's width, so the nose stands out and the cheeks do not.
-PROTRUSION_RADIUS = 0.08
 
 
 @dataclass
@@ -140,18 +137,12 @@ def _mirror_icp(points, surface, normal, offset, steps):
     return normal, offset, surface.closest(_mirror(points, normal, offset))[2].mean()
 
 
-def stand_out(heights, sample_heights, tree, points, radius):
-    """How far each of points (k, 3), at heights (k,), stands out of the samples (held by tree,
-    at sample_heights) within radius of it: its height less theirs on average."""
-    return np.array([height - sample_heights[around].mean() for height, around
-                     in zip(heights, tree.query_ball_point(points, radius))])
-
-
 def _protrusion(samples, tree, direction, candidates, radius):
     """How far the extreme candidate in `direction` stands out of its neighbourhood."""
     height = samples @ direction
     tip = candidates[np.argmax(height[candidates])]
-    return stand_out(height[[tip]], height, tree, samples[[tip]], radius)[0], tip
+    around = tree.query_ball_point(samples[tip], radius)
+    return height[tip] - height[around].mean(), tip
 
 
 def face_frame(vertices, triangles, search=None):
@@ -191,7 +182,7 @@ def _forward(samples, normals, border, normal, offset, size):
     angles = np.radians(np.arange(0, 360, 1.0))
     directions = np.cos(angles)[:, None] * basis[:, 0] + np.sin(angles)[:, None] * basis[:, 1]
     tree = cKDTree(samples)
-    radius = PROTRUSION_RADIUS * size
+    radius = 0.08 * size
     scores = np.array([_protrusion(samples, tree, d, candidates, radius)[0] for d in directions])
     smooth = np.convolve(np.r_[scores[-7:], scores, scores[:7]], np.ones(15) / 15, mode="valid")
     forward = directions[np.argmax(smooth)]
