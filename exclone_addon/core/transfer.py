@@ -524,17 +524,21 @@ class CorrespondedTransfer:
     def _turned(self, displacements):
         """[(k,) per expression]: the imaged target triangles displacements (B, n, 3) turn over,
         their moved normals made coordinate first (as _images: several times faster than
-        gathering (T, 3, 3) corners per expression)."""
+        gathering (T, 3, 3) corners per expression), a few thousand triangles at a time (their
+        temporaries stay in cache; all at once they added 57 MiB to the 50k clone's peak)."""
         positions = np.ascontiguousarray(np.transpose(displacements, (2, 1, 0)))   # (3, n, B)
         positions += self.system.rest_vertices.T[:, :, None]
-        first, second, third = self.corner_ids
-        origin = np.take(positions, first, axis=1)
-        ends = [np.take(positions, corner, axis=1) - origin for corner in (second, third)]
-        normals = np.stack([ends[0][(k + 1) % 3] * ends[1][(k + 2) % 3] -
-                            ends[0][(k + 2) % 3] * ends[1][(k + 1) % 3] for k in range(3)],
-                           axis=-1)                                                  # (T, B, 3)
-        rest_normals = self._turn_references[0][:, None]
-        over = turned_over(rest_normals, normals) & self.imaged_triangles[:, None]
+        rest_normals = self._turn_references[0]
+        over = np.zeros((len(rest_normals), len(displacements)), dtype=bool)
+        for rows in blocks(len(rest_normals), TRIANGLES_PER_CHUNK):
+            first, second, third = self.corner_ids[:, rows]
+            origin = np.take(positions, first, axis=1)
+            ends = [np.take(positions, corner, axis=1) - origin for corner in (second, third)]
+            normals = np.stack([ends[0][(k + 1) % 3] * ends[1][(k + 2) % 3] -
+                                ends[0][(k + 2) % 3] * ends[1][(k + 1) % 3] for k in range(3)],
+                               axis=-1)                                              # (t, B, 3)
+            over[rows] = turned_over(rest_normals[rows, None], normals)
+        over &= self.imaged_triangles[:, None]
         return [np.flatnonzero(column) for column in over.T]
 
     def _untangle_expression(self, displacements, delta, turned):
