@@ -167,6 +167,7 @@ class Transfer:
         self.constant = self._constant_rhs(target_vertices, target_triangles, formulation)
         self.parts = vertex_parts(self.n, target_triangles)
         self._part_sums, self._held_parts = self._part_sums_and_held()
+        self._kept_anchoring = None
 
     @cached_property
     def normal_matrix(self):
@@ -242,19 +243,37 @@ class Transfer:
     def _anchored(self, d, anchor_moves, anchor_vertices):
         """d (n, 3B) with each connected part translated: by the mean gap to its anchors' moves
         where it has anchors, else back to no mean motion; parts holding a fixed vertex stay."""
-        count = np.asarray(self._part_sums.sum(axis=1))
-        shift = -(self._part_sums @ d) / count
-        if anchor_vertices is not None and len(anchor_vertices):
+        anchored, anchor_sums, n_anchor, free_sums, free_count = self._anchoring(anchor_vertices)
+        shift = np.empty((len(anchored), d.shape[1]))
+        shift[~anchored] = -(free_sums @ d) / free_count
+        if anchored.any():
+            # np.take and the gap made in place: no (k, 3B) temporaries beside it
+            gap = np.take(d, anchor_vertices, axis=0)
+            np.subtract(anchor_moves, gap, out=gap)
+            shift[anchored] = (anchor_sums @ gap) / n_anchor
+        shift[self._held_parts] = 0.0
+        d += np.take(shift, self.parts, axis=0)
+        return d
+
+    def _anchoring(self, anchor_vertices):
+        """_anchored's sums for anchors anchor_vertices (k,) or None: ((P,) the parts with
+        anchors, (P' x k) sparse sum over each one's anchors, (P', 1) their counts, (P'' x n)
+        sparse sum over each other part's vertices, (P'', 1) their counts). Kept for the next
+        call with the same anchors (every solve of a clone passes the same)."""
+        anchor_vertices = np.zeros(0, dtype=np.int64) if anchor_vertices is None else \
+            np.asarray(anchor_vertices)
+        kept = self._kept_anchoring
+        if kept is None or not np.array_equal(kept[0], anchor_vertices):
+            count = np.asarray(self._part_sums.sum(axis=1))
             owner = self.parts[anchor_vertices]
             n_anchor = np.bincount(owner, minlength=len(count))
+            anchored = n_anchor > 0
             by_part = sp.csr_matrix((np.ones(len(owner)), (owner, np.arange(len(owner)))),
                                     shape=(len(count), len(owner)))
-            sums = by_part @ (anchor_moves - d[anchor_vertices])
-            anchored = n_anchor > 0
-            shift[anchored] = sums[anchored] / n_anchor[anchored, None]
-        shift[self._held_parts] = 0.0
-        d += shift[self.parts]
-        return d
+            kept = (anchor_vertices.copy(), anchored, by_part[anchored],
+                    n_anchor[anchored, None], self._part_sums[~anchored], count[~anchored])
+            self._kept_anchoring = kept
+        return kept[1:]
 
 
 class CorrespondedTransfer:
@@ -587,13 +606,11 @@ class CorrespondedTransfer:
         turns image_turn (k,) and weigh TANGLED_WEIGHT. Fixed vertices and the rest stay.
         Returns the triangles the solve may have moved (those touching what it solved)."""
         triangles, rest = self.system.triangles, self.system.rest_vertices
-        region = np.zeros(self.system.n, dtype=bool)
-        region[triangles[tangled]] = True
-        around = (self.vertex_triangles.T @ region.astype(np.float64)) > 0
-        region = (self.vertex_triangles @ around.astype(np.float64)) > 0
-        region[self.system.fixed] = False
-        inside = np.flatnonzero(region)
-        touching = np.flatnonzero((self.vertex_triangles.T @ region.astype(np.float64)) > 0)
+        # looked up among the rows of the vertices concerned alone: a product with the whole
+        # vertex_triangles took most of a small untangling's time at 50k vertices
+        around = np.unique(self.vertex_triangles[np.unique(triangles[tangled])].indices)
+        inside = np.setdiff1d(triangles[around], self.system.fixed)
+        touching = np.unique(self.vertex_triangles[inside].indices)
         if not len(inside):
             return touching
         # the reduced operator whatever the system's formulation: the displacements hold no
