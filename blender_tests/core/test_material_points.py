@@ -48,11 +48,11 @@ def test_no_material_points_without_frames():
     assert session.calibrated and session.material_points is None
 
 
-def test_material_points_learn_their_depth_as_the_head_turns():
-    """Material points located off their true depth (0.3 cm spread: the depth is FaceMesh's
-    guess) on a neutral face turning to 20 deg yaw, 10 deg pitch, FaceMesh's fit exact: their
-    depths come within 0.007 cm rms and the refit moves the shape 0.005 cm at most (their
-    depths left as located: 0.27 cm rms, and the shape moves 0.16 cm, read as expression)."""
+def _exact_rig():
+    """The ICT model's neutral 50 cm in front of the camera, FaceMesh's fit made exact at any
+    turn, material points located on a random texture at the frontal pose: (camera,
+    translation, exact_fit(rotation), the frontal fit, the points, the random generator that
+    drew the texture)."""
     model = ict_rig().model
     camera = Camera.from_image_size(*IMAGE_SIZE)
     fitter = ShapeFitter(model, camera)
@@ -64,7 +64,15 @@ def test_material_points_learn_their_depth_as_the_head_turns():
     start = exact_fit(FRONTAL)
     rng = np.random.default_rng(0)
     texture = rng.uniform(0, 255, IMAGE_SIZE[::-1]).astype(np.uint8)
-    material = MaterialPoints(texture, start, fitter)
+    return camera, translation, exact_fit, start, MaterialPoints(texture, start, fitter), rng
+
+
+def test_material_points_learn_their_depth_as_the_head_turns():
+    """Material points located off their true depth (0.3 cm spread: the depth is FaceMesh's
+    guess) on a neutral face turning to 20 deg yaw, 10 deg pitch, FaceMesh's fit exact: their
+    depths come within 0.007 cm rms and the refit moves the shape 0.005 cm at most (their
+    depths left as located: 0.27 cm rms, and the shape moves 0.16 cm, read as expression)."""
+    camera, translation, exact_fit, start, material, rng = _exact_rig()
     seen = start.rotation.apply(material.located) + start.translation
     depth_error = rng.normal(0.0, 0.3, len(seen))
     along = seen * (1 + depth_error / np.linalg.norm(seen, axis=1))[:, None]
@@ -73,7 +81,7 @@ def test_material_points_learn_their_depth_as_the_head_turns():
         rotation = Rotation.from_euler("yxz", [yaw, 0.5 * yaw, 0.0], degrees=True) * FRONTAL
         fit = exact_fit(rotation)
         refit = material.fit(camera.project(rotation.apply(truth) + translation), fit)
-    moved = np.tensordot(refit.params - fit.params, model.modes, axes=1)
+    moved = np.tensordot(refit.params - fit.params, ict_rig().model.modes, axes=1)
     assert np.sqrt(np.mean((material.depth - depth_error) ** 2)) < 0.03
     assert np.linalg.norm(moved, axis=1).max() < 0.03
 
@@ -84,17 +92,7 @@ def test_the_pull_keeps_what_moves_across_the_head_turn():
     sideways (along the turn: what the flow's under-reading of the turn leaves) and half
     upward (across it: as a brow or a frown moves them), keep 0.37 and 0.69 of their offset 10
     frames later (the pull alike in both directions: 0.37 and 0.27)."""
-    model = ict_rig().model
-    camera = Camera.from_image_size(*IMAGE_SIZE)
-    fitter = ShapeFitter(model, camera)
-    translation = np.array([0.0, 0.0, 50.0])
-
-    def exact_fit(rotation):
-        return fitter.fit(camera.project(rotation.apply(model.mean) + translation))
-
-    start = exact_fit(FRONTAL)
-    texture = np.random.default_rng(0).uniform(0, 255, IMAGE_SIZE[::-1]).astype(np.uint8)
-    material = MaterialPoints(texture, start, fitter)
+    camera, translation, exact_fit, start, material, _ = _exact_rig()
     sideways = np.arange(len(material.indices)) % 2 == 0
     offset = np.where(sideways[:, None], [2.0, 0.0], [0.0, -2.0])
     before = camera.project(start.rotation.apply(material.located) + translation)
