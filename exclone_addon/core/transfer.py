@@ -616,10 +616,11 @@ class CorrespondedTransfer:
         # the reduced operator whatever the system's formulation: the displacements hold no
         # 4th vertices
         gradient = deformation.gradient_operator(rest, triangles[touching])[0].tocsc()
-        goals = (gradient @ (rest + displacements)).reshape(len(touching), 3, 3)  # F^T blocks
+        positions = rest + displacements
+        goals = (gradient @ positions).reshape(len(touching), 3, 3)              # F^T blocks
         at = np.searchsorted(touching, tangled)
         rest_normals = self._turn_references[0][tangled]
-        normals = triangle_normals(rest + displacements, triangles[tangled])
+        normals = triangle_normals(positions, triangles[tangled])
         axes = np.cross(normals, rest_normals)
         lengths = np.linalg.norm(axes, axis=1, keepdims=True)
         axes = np.divide(axes, lengths, out=np.zeros_like(axes), where=lengths > 0)
