@@ -75,6 +75,7 @@ def cloned(source, face, landmarks, progress):
     clock = time.perf_counter()
     result = clone_expressions(source.mesh, source.deltas, source.names, face.head.mesh,
                                landmarks=landmarks, source_landmarks=source.automatic_landmarks,
+                               source_modes=source.shape_modes,
                                settings=CloneSettings(), progress=progress,
                                face_guide=face.guide, fixed_vertices=face.head.fixed,
                                shared_vertices=character.shared_vertices(source, face))

@@ -4,7 +4,8 @@ Usage: python scripts/make_library.py [SHARED_DATA_DIR]   (default: ../shared/da
 
 Writes into exclone_addon/data/:
   ict_arkit_library.npz  ICT-FaceKit neutral head + 57 expressions (sparse float32 deltas), 68
-                         landmark vertex ids (iBUG order) and the named part vertex ranges
+                         landmark vertex ids (iBUG order), the named part vertex ranges and the
+                         ICT identity model's first 30 modes over the face part (float16)
   demo_head.obj          MakeHuman head neutral.obj, byte-for-byte copy (the demo target)
   canonical_face.obj     MediaPipe canonical face, byte-for-byte copy (vertex i = landmark i)
   LICENSE-*              the licences of the three sources
@@ -30,6 +31,9 @@ N_ICT_VERTICES = 26719
 MOVE_THRESHOLD = 1e-6
 # float16 deltas are only acceptable if they keep the error below this (centimetres).
 FLOAT16_TOLERANCE = 1e-4
+# The identity modes are kept over the face part only (the registration's region); float16 keeps
+# them within this (centimetres): they only start the registration.
+IDENTITY_TOLERANCE = 1e-2
 # Part vertex ranges from the ICT-FaceKit README, as [start, stop).
 ICT_PARTS = [
     ("face", 0, 9409),
@@ -97,10 +101,27 @@ def build_library(ict):
         "landmarks68": landmarks.astype(np.int32),
         "part_names": np.array([p[0] for p in ICT_PARTS]),
         "part_ranges": np.array([p[1:] for p in ICT_PARTS], dtype=np.int32),
+        "identity_modes": identity_modes(ict),
     }
     out = OUT / LIBRARY_NAME
     save_npz_deterministic(out, arrays)
     return out, mesh, names, deltas
+
+
+def identity_modes(ict):
+    """The identity model's modes over the face part, float16 (k, face vertices, 3)."""
+    with np.load(ict / "identities.npz") as data:
+        modes = data["deltas"]
+    if modes.ndim != 3 or modes.shape[1:] != (N_ICT_VERTICES, 3):
+        fail(f"identities.npz deltas have shape {modes.shape}, expected (k, {N_ICT_VERTICES}, 3)")
+    face_stop = dict((name, stop) for name, _, stop in ICT_PARTS)["face"]
+    kept = modes[:, :face_stop]
+    error = float(np.abs(kept.astype(np.float16).astype(np.float32) - kept).max())
+    if error > IDENTITY_TOLERANCE:
+        fail(f"float16 identity modes err {error:.3g} cm (tolerance {IDENTITY_TOLERANCE:g} cm)")
+    print(f"identity modes: {len(kept)} over {face_stop} vertices, float16 max abs error "
+          f"{error:.3g} cm")
+    return kept.astype(np.float16)
 
 
 def check_round_trip(path, mesh, names, deltas):

@@ -372,7 +372,8 @@ def run_engine(source, target, landmarks, clone_settings, transfer=True, progres
         try:
             fit = fit_faces(source.mesh, target_mesh, landmarks=landmarks,
                             source_landmarks=source.automatic_landmarks,
-                            settings=clone_settings, progress=fit_progress, face_guide=guide,
+                            source_modes=source.shape_modes, settings=clone_settings,
+                            progress=fit_progress, face_guide=guide,
                             fixed_vertices=target.head.fixed,
                             shared_vertices=core_character.shared_vertices(source, target))
         except ExCloneError as error:

@@ -25,6 +25,7 @@ from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .reports import listed
 from .rims import RimGoals
+from .shape_space import fit_shape_space
 from .surface import Surface
 from .threads import limited_threads
 from .transfer import CorrespondedTransfer, Transfer
@@ -114,7 +115,8 @@ class Welded:
 
 @limited_threads
 def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings=None,
-              progress=None, face_guide=None, fixed_vertices=None, shared_vertices=None):
+              progress=None, face_guide=None, fixed_vertices=None, shared_vertices=None,
+              source_modes=None):
     """Landmarks, registration and correspondence of source onto target (PolyMesh each).
 
     landmarks: None for automatic ones, or {"source": ids, "target": ids} (same length; hard).
@@ -128,15 +130,18 @@ def fit_faces(source, target, *, landmarks=None, source_landmarks=None, settings
     shared_vertices: for a target made from the source's base mesh (core.character.
     shared_vertices), _fit_shared's `shared`: with automatic landmarks the fit is _fit_shared's,
     no registration (edited landmarks ask for a registration that holds them).
+    source_modes: (k, n_source, 3) how the source's neutral varies between faces (the bundled
+    library's ExpressionLibrary.shape_modes), or None: the registration starts from the face of
+    that space nearest the target (core.shape_space).
     Raises ExCloneError with a user-facing message on bad input.
     """
     return _fit(_welded_surface(source, "source mesh"), target, landmarks, source_landmarks,
                 _checked_settings(settings), _progress_span(progress, 0.0, 1.0), face_guide,
-                fixed_vertices, shared_vertices)
+                fixed_vertices, shared_vertices, source_modes)
 
 
 def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report,
-         face_guide=None, fixed_vertices=None, shared_vertices=None):
+         face_guide=None, fixed_vertices=None, shared_vertices=None, source_modes=None):
     """fit_faces on the welded source (Welded, whole mesh); report(fraction, message) or a
     no-op."""
     if shared_vertices is not None and landmarks is None:
@@ -155,7 +160,12 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
     automatic = landmarks is None
     rotation, scale, aligned = _rigid_alignment(source_region, target_region, src_lm, tgt_lm,
                                                 automatic, settings)
-    reg = _registration(aligned, target_region, src_lm, tgt_lm, automatic, settings,
+    start = aligned
+    if source_modes is not None:
+        rotation, scale, aligned, start = _shape_start(
+            aligned, target_region, _checked_modes(source_modes, source_weld), rotation, scale,
+            settings)
+    reg = _registration(start, target_region, src_lm, tgt_lm, automatic, settings,
                         _progress_span(report, 0.2, 0.85))
     stopwatch.lap("registration")
 
@@ -356,6 +366,26 @@ def _rigid_alignment(source, target, src_lm, tgt_lm, automatic, settings):
         aligned = aligned.moved(aligned.vertices @ r.T * s + t)
         rotation, scale = r @ rotation, s * scale
     return rotation, scale, aligned
+
+
+def _checked_modes(modes, source_weld):
+    """The source's shape modes (k, n_source, 3) in the welded numbering."""
+    modes = np.asarray(modes, dtype=np.float64)
+    if modes.ndim != 3 or modes.shape[1:] != (source_weld.own_count(), 3):
+        raise ExCloneError(f"the source's shape modes have shape {modes.shape}, expected "
+                           f"(k, {source_weld.own_count()}, 3)")
+    return modes[:, source_weld.originals]
+
+
+def _shape_start(aligned, target, modes, rotation, scale, settings):
+    """(R, s, aligned, start): the similarity and the aligned source refined with the source's
+    shape space fitted to the target (modes (k, n, 3) in the welded numbering, the source's own
+    frame), and the registration's start, the face of that space nearest the target. The
+    transfer keeps the aligned neutral: the expressions are the source's own."""
+    r, s, t, _, face = fit_shape_space(aligned, target, modes @ rotation.T * scale,
+                                       settings.max_distance)
+    aligned = aligned.moved(aligned.vertices @ r.T * s + t)
+    return r @ rotation, s * scale, aligned, aligned.moved(face)
 
 
 def _registration(aligned, target, src_lm, tgt_lm, automatic, settings, report):
@@ -631,19 +661,20 @@ def _in_own_numbering(result, index):
 @limited_threads
 def clone_expressions(source, source_deltas, names, target, *, landmarks=None,
                       source_landmarks=None, settings=None, progress=None, face_guide=None,
-                      fixed_vertices=None, shared_vertices=None):
+                      fixed_vertices=None, shared_vertices=None, source_modes=None):
     """Clone every source expression onto the target: fit_faces, then transfer_expressions.
 
     source, target: PolyMesh. source_deltas: (E, n_source, 3). names: E strings.
-    landmarks, source_landmarks, progress, face_guide, fixed_vertices, shared_vertices: as
-    fit_faces.
+    landmarks, source_landmarks, progress, face_guide, fixed_vertices, shared_vertices,
+    source_modes: as fit_faces.
     Raises ExCloneError with a user-facing message on bad input.
     """
     settings = _checked_settings(settings)
     source_weld = _welded_surface(source, "source mesh")
     _checked_deltas(source_deltas, names, source_weld)   # before the long part
     fit = _fit(source_weld, target, landmarks, source_landmarks, settings,
-               _progress_span(progress, 0.0, 0.8), face_guide, fixed_vertices, shared_vertices)
+               _progress_span(progress, 0.0, 0.8), face_guide, fixed_vertices, shared_vertices,
+               source_modes)
     if progress:
         progress(0.8, "transfer")
     result = transfer_expressions(fit, source_deltas, names)

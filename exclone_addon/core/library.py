@@ -4,7 +4,7 @@ Sources: the bundled ICT-FaceKit ARKit library (data/ict_arkit_library.npz, made
 scripts/make_library.py) or a folder of OBJs (neutral.obj + one OBJ per expression).
 """
 import zipfile
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +51,10 @@ class ExpressionLibrary:
     # the head region of a bigger mesh (a full body) the library was cut to, as a
     # core.character.HeadCut (its ids: the mesh object's own numbering), or None: used whole
     head: object = None
+    # (k, n, 3) how the neutral varies between faces (the bundled library: the ICT identity
+    # model's first modes, over its face part), or None: the registration starts from the face
+    # of that space nearest the target (core.shape_space)
+    shape_modes: np.ndarray = None
 
     @property
     def own_vertex_count(self):
@@ -74,9 +78,7 @@ class ExpressionLibrary:
             raise ExCloneError(f"unknown expression(s) {', '.join(unknown)}; "
                                f"available: {', '.join(self.names)}")
         rows = [index[name] for name in names]
-        return ExpressionLibrary(self.mesh, list(names), self.deltas[rows], self.landmarks68,
-                                 dict(self.parts), self.automatic_landmarks, self.description,
-                                 self.head)
+        return replace(self, names=list(names), deltas=self.deltas[rows], parts=dict(self.parts))
 
     def with_tongue_out(self):
         """The library with a tongueOut of its own where it has jawOpen and no tongueOut
@@ -85,10 +87,9 @@ class ExpressionLibrary:
         if "tongueOut" in self.names or "jawOpen" not in self.names:
             return self
         jaw = self.deltas[self.names.index("jawOpen")]
-        return ExpressionLibrary(self.mesh, self.names + ["tongueOut"],
-                                 np.concatenate([self.deltas, tongue_out_of_jaw(jaw)[None]]),
-                                 self.landmarks68, dict(self.parts), self.automatic_landmarks,
-                                 self.description, self.head)
+        return replace(self, names=self.names + ["tongueOut"],
+                       deltas=np.concatenate([self.deltas, tongue_out_of_jaw(jaw)[None]]),
+                       parts=dict(self.parts))
 
 
 def tongue_out_of_jaw(jaw_open):
@@ -119,6 +120,9 @@ def load_library(path=None):
             landmarks = archive["landmarks68"].astype(np.int64)
             parts = {str(name): (int(start), int(stop))
                      for name, (start, stop) in zip(archive["part_names"], archive["part_ranges"])}
+            # optional: over the first vertices (the face part); the others do not vary
+            kept_modes = (archive["identity_modes"].astype(np.float64)
+                          if "identity_modes" in archive.files else None)
     except ExCloneError:
         raise
     except (OSError, ValueError, KeyError, TypeError, zipfile.BadZipFile, EOFError) as exc:
@@ -128,16 +132,23 @@ def load_library(path=None):
                   and loop_totals.sum() == len(loop_vertices)
                   and (len(loop_vertices) == 0 or 0 <= loop_vertices.min() <= loop_vertices.max() < n)
                   and moving.shape == (len(names), n) and values.shape == (moving.sum(), 3)
-                  and (len(landmarks) == 0 or 0 <= landmarks.min() <= landmarks.max() < n))
+                  and (len(landmarks) == 0 or 0 <= landmarks.min() <= landmarks.max() < n)
+                  and (kept_modes is None or (kept_modes.ndim == 3 and kept_modes.shape[1] <= n
+                                              and kept_modes.shape[2] == 3)))
     if not consistent:
         raise ExCloneError(f"expression library {path} is corrupt (inconsistent array sizes)")
     deltas = np.zeros((len(names), n, 3))
     deltas[moving] = values
+    shape_modes = None
+    if kept_modes is not None:
+        shape_modes = np.zeros((len(kept_modes), n, 3))
+        shape_modes[:, :kept_modes.shape[1]] = kept_modes
     bundled = path.resolve() == data.LIBRARY_FILE.resolve()
     return ExpressionLibrary(PolyMesh(vertices, loop_totals, loop_vertices), names, deltas,
                              landmarks if len(landmarks) else None, parts,
                              library_landmarks() if bundled else None,
-                             "the built-in ARKit library" if bundled else str(path))
+                             "the built-in ARKit library" if bundled else str(path),
+                             shape_modes=shape_modes)
 
 
 def library_landmarks():
