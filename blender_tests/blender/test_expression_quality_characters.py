@@ -92,6 +92,7 @@ def measured(file_name, decimated=False, triangulated=False):
     library = load_library().subset(EXPRESSIONS)
     result = clone_expressions(library.mesh, library.deltas, library.names, face.head.mesh,
                                source_landmarks=library.automatic_landmarks,
+                               source_modes=library.shape_modes,
                                face_guide=face.guide, fixed_vertices=face.head.fixed)
     found = em.measure_clone(face.head.mesh, result, source=library.mesh,
                              source_deltas=library.deltas)

@@ -361,7 +361,8 @@ def test_a_real_clone_onto_the_demo_head_is_measured():
     lib = library.load_library().subset(["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthClose"])
     head = data.demo_head()
     result = clone_expressions(lib.mesh, lib.deltas, lib.names, head,
-                               source_landmarks=lib.automatic_landmarks)
+                               source_landmarks=lib.automatic_landmarks,
+                               source_modes=lib.shape_modes)
     found = em.measure_clone(head, result, source=lib.mesh, source_deltas=lib.deltas)
     print("\nlibrary onto the demo head:", {name: {key: row[key] for key in (
         "eyelid_gap_left", "eyelid_gap_right", "lip_gap", "edge_stretch", "excess_stretch",

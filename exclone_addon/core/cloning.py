@@ -25,7 +25,7 @@ from .orientation import face_frame
 from .registration import Schedule, register, similarity_icp, similarity_transform
 from .reports import listed
 from .rims import RimGoals
-from .shape_space import fit_shape_space
+from .shape_space import fit_shape_space, plausible
 from .surface import Surface
 from .threads import limited_threads
 from .transfer import CorrespondedTransfer, Transfer
@@ -380,10 +380,13 @@ def _checked_modes(modes, source_weld):
 def _shape_start(aligned, target, modes, rotation, scale, settings):
     """(R, s, aligned, start): the similarity and the aligned source refined with the source's
     shape space fitted to the target (modes (k, n, 3) in the welded numbering, the source's own
-    frame), and the registration's start, the face of that space nearest the target. The
+    frame), and the registration's start, the face of that space nearest the target; the
+    aligned source as it was if that face is not plausible (shape_space.plausible). The
     transfer keeps the aligned neutral: the expressions are the source's own."""
-    r, s, t, _, face = fit_shape_space(aligned, target, modes @ rotation.T * scale,
-                                       settings.max_distance)
+    r, s, t, weights, face = fit_shape_space(aligned, target, modes @ rotation.T * scale,
+                                             settings.max_distance)
+    if not plausible(weights):
+        return rotation, scale, aligned, aligned
     aligned = aligned.moved(aligned.vertices @ r.T * s + t)
     return r @ rotation, s * scale, aligned, aligned.moved(face)
 

@@ -14,6 +14,7 @@ weights, the weights a priori standard normal and bounded (lsq_linear).
 """
 import numpy as np
 from scipy.optimize import lsq_linear
+from scipy.stats import chi2
 from scipy.spatial.transform import Rotation
 
 from .proximity import interpolate
@@ -22,8 +23,12 @@ from .registration import closest_valid_points
 # What the modes leave unexplained of a face, x the target's diagonal: the prior's scale (a
 # weight's standard deviation is 1).
 UNEXPLAINED = 0.01
-# The weights' bound, in standard deviations: a face the space still calls plausible.
+# The weights' bound, in standard deviations.
 WEIGHT_BOUND = 3.0
+# A face the space calls plausible: its weights' squared norm within this quantile of the
+# chi-square distribution of k standard normal weights. A face beyond it (a stylised head, a
+# low-poly one) is not one of the space's faces, and its nearest face only misleads the start.
+PLAUSIBLE = 0.999
 # The point-to-point share beside the point-to-plane distance.
 ALONG_SURFACE = 0.05
 # Gauss-Newton steps (it settles in 3-5) and the step (x diagonal) below which it stops.
@@ -67,6 +72,11 @@ def fit_shape_space(aligned, target, modes, max_distance):
         if moved < SETTLED * diagonal:
             break
     return total_r, total_s, total_t, weights, neutral + np.tensordot(weights, modes, 1)
+
+
+def plausible(weights):
+    """Whether the fitted weights make a face of the space (PLAUSIBLE)."""
+    return float(np.sum(np.square(weights))) <= chi2.ppf(PLAUSIBLE, len(weights))
 
 
 def _gauss_newton_step(face, ids, target, modes, weights, max_distance, border_distance):
