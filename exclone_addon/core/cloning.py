@@ -445,14 +445,17 @@ def _correspondence_quality(mapped, weights, scale, diagonal):
 
 
 @limited_threads
-def fit_registered(source, target, registered_source, *, settings=None):
+def fit_registered(source, target, registered_source, *, settings=None, landmarks=None):
     """A FaceFit from a registration made elsewhere (a known answer, or another tool's wrap of
-    the source onto the target): correspondence only, no landmarks, no registration.
+    the source onto the target): correspondence only, no registration.
 
     registered_source: (n_source, 3) the source neutral deformed onto the target, in the
     target's coordinates. Every valid triangle of both meshes takes part. The similarity that
     brings the source's expressions into the target's frame is the least-squares one from the
     source to its registered positions.
+    landmarks: None, or (names, source ids, target ids) (own numbering), e.g. a clone's: the
+    transfer then finds the eyes' lids from them and closes them as a clone does (the eyelid
+    rims); without them it has none.
     """
     settings = _checked_settings(settings)
     start = time.perf_counter()
@@ -469,15 +472,17 @@ def fit_registered(source, target, registered_source, *, settings=None):
                                                   registered_welded[ids])
     vertex_map, mapped, pairs, weights = _correspond(source_surface.moved(registered_welded),
                                                      target_region, settings)
-    none = np.zeros(0, dtype=np.int64)
+    names, source_ids, target_ids = landmarks if landmarks is not None else ([], [], [])
     return FaceFit(
         source=source_surface, target=target, welded_target=target_weld, source_weld=source_weld,
         target_region=target_region,
         source_region=source_surface.triangles, rotation=rotation, scale=scale,
         aligned_source=source_surface.vertices @ rotation.T * scale + shift,
         vertex_map=vertex_map, mapped=mapped, pairs=pairs, weights=weights,
-        formulation=settings.formulation, source_landmarks=none, target_landmarks=none,
-        landmark_names=[], registered_source=registered,
+        formulation=settings.formulation,
+        source_landmarks=np.asarray(source_ids, dtype=np.int64),
+        target_landmarks=np.asarray(target_ids, dtype=np.int64),
+        landmark_names=list(names), registered_source=registered,
         timings={"correspondence": time.perf_counter() - start},
         quality=_correspondence_quality(mapped, weights, scale, target_region.diagonal))
 
