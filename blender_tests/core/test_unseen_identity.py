@@ -106,6 +106,7 @@ def identity(request, library):
     figures = {"seed": seed, "mean": float(error.mean()),
                "p95": float(np.quantile(error, 0.95)), "ratio": engine / best,
                "registration_ratio": registration / error_of["exact"],
+               "shape_start": clone.quality["shape_space_start"],
                "beyond": (float(beyond_error.mean()), float(np.quantile(beyond_error, 0.95))),
                "blinks": {name: (measures[name][f"eyelid_gap_{closing}"],
                                  measures[name][f"eyelid_gap_{other}"])
@@ -124,6 +125,7 @@ def identity(request, library):
 
 def test_the_registration_reaches_what_it_reached(identity):
     mean, p95, ratio, registration_ratio = REACHED[identity["seed"]]
+    assert identity["shape_start"], identity["text"]      # a face of the library's space
     assert identity["mean"] <= MARGIN * mean, identity["text"]
     assert identity["p95"] <= MARGIN * p95, identity["text"]
     assert identity["ratio"] <= MARGIN * ratio, identity["text"]

@@ -160,9 +160,9 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
     automatic = landmarks is None
     rotation, scale, aligned = _rigid_alignment(source_region, target_region, src_lm, tgt_lm,
                                                 automatic, settings)
-    start = aligned
+    start, shape_quality = aligned, {}
     if source_modes is not None:
-        rotation, scale, aligned, start = _shape_start(
+        rotation, scale, aligned, start, shape_quality = _shape_start(
             aligned, target_region, _checked_modes(source_modes, source_weld), rotation, scale,
             settings)
     reg = _registration(start, target_region, src_lm, tgt_lm, automatic, settings,
@@ -184,7 +184,8 @@ def _fit(source_weld, target_mesh, landmarks, source_landmarks, settings, report
         registered_source=reg.vertices[source_weld.index],
         timings=stopwatch.timings,
         quality={**_registration_quality(reg, target_region.diagonal, len(src_lm)),
-                 **_correspondence_quality(mapped, weights, scale, target_region.diagonal)},
+                 **_correspondence_quality(mapped, weights, scale, target_region.diagonal),
+                 **shape_quality},
         fixed_vertices=_welded_ids(target_weld, fixed_vertices),
         _gradient=_region_gradient(whole_gradient, target, target_region))
 
@@ -378,17 +379,21 @@ def _checked_modes(modes, source_weld):
 
 
 def _shape_start(aligned, target, modes, rotation, scale, settings):
-    """(R, s, aligned, start): the similarity and the aligned source refined with the source's
-    shape space fitted to the target (modes (k, n, 3) in the welded numbering, the source's own
-    frame), and the registration's start, the face of that space nearest the target; the
-    aligned source as it was if that face is not plausible (shape_space.plausible). The
-    transfer keeps the aligned neutral: the expressions are the source's own."""
+    """(R, s, aligned, start, quality): the similarity and the aligned source refined with the
+    source's shape space fitted to the target (modes (k, n, 3) in the welded numbering, the
+    source's own frame), and the registration's start, the face of that space nearest the
+    target; the aligned source as it was if that face is not plausible (shape_space.plausible).
+    The transfer keeps the aligned neutral: the expressions are the source's own. quality: the
+    fitted weights' norm and whether the start is that face, for the run's report."""
     r, s, t, weights, face = fit_shape_space(aligned, target, modes @ rotation.T * scale,
                                              settings.max_distance)
-    if not plausible(weights):
-        return rotation, scale, aligned, aligned
+    used = plausible(weights)
+    quality = {"shape_space_weight_norm": float(np.linalg.norm(weights)),
+               "shape_space_start": used}
+    if not used:
+        return rotation, scale, aligned, aligned, quality
     aligned = aligned.moved(aligned.vertices @ r.T * s + t)
-    return r @ rotation, s * scale, aligned, aligned.moved(face)
+    return r @ rotation, s * scale, aligned, aligned.moved(face), quality
 
 
 def _registration(aligned, target, src_lm, tgt_lm, automatic, settings, report):

@@ -76,7 +76,7 @@ def fit_shape_space(aligned, target, modes, max_distance):
 
 def plausible(weights):
     """Whether the fitted weights make a face of the space (PLAUSIBLE)."""
-    return float(np.sum(np.square(weights))) <= chi2.ppf(PLAUSIBLE, len(weights))
+    return bool(np.sum(np.square(weights)) <= chi2.ppf(PLAUSIBLE, len(weights)))
 
 
 def _gauss_newton_step(face, ids, target, modes, weights, max_distance, border_distance):
