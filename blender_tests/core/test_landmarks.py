@@ -111,19 +111,13 @@ IDENTITIES = SHARED_DATA / "ict-facekit" / "identities.npz"
 
 @pytest.mark.skipif(not IDENTITIES.exists(),
                     reason=f"needs the shared ICT identity model ({IDENTITIES})")
-@pytest.mark.xfail(strict=True, reason="measured: the nose tip is the front-most midline vertex, "
-                                       "here the lower lip, and too few points are found from it "
-                                       "(on the remeshed copy 20, 11-35% of the diagonal off). "
-                                       "The midline vertex that stands out of its surroundings "
-                                       "most found the nose here and on ICT identities 1-12, but "
-                                       "the lips on the MakeHuman man's head cut from his body "
-                                       "(docs/method.md §4)")
 def test_nose_tip_on_a_face_whose_lower_lip_reaches_further_forward():
     """ICT identity 6's face region (weights drawn as test_unseen_identity draws them), tilted,
     scaled and moved: in its own frame its lower lip stands in front of its nose tip. The nose
-    tip is found on the nose, and the other points from it, near where the library's face
-    region has them (before: the tip on the lower lip, and from there too few points found here;
-    in test_unseen_identity's remeshed copy of this face 20 points, 11-35% of the diagonal off)."""
+    tip is found on the nose (the uppermost of the midline's strong bumps), and the other points
+    from it, near where the library's face region has them (before, as the front-most midline
+    vertex: the tip on the lower lip, and from there too few points found here; in
+    test_unseen_identity's remeshed copy of this face 20 points, 11-35% of the diagonal off)."""
     lib = load_library()
     with np.load(IDENTITIES) as model:
         modes = model["deltas"].astype(np.float64)
