@@ -231,20 +231,22 @@ def heuristic_landmarks(vertices, triangles, frame=None, parts=None, nose_tip=No
     return _snap_symmetric(found, q, skin)
 
 
-# The nose tip: among the midline's bumps (each the front-most vertex within BUMP x the diagonal
-# of itself) no more than TIP_DEPTH behind the front-most, those that stand out of the surface
-# within SURROUNDINGS of them at least STRONG as far as the one that stands out most; the
-# uppermost of them. A face whose lower lip reaches further forward than its nose has the lip
-# front-most (ICT identity 6); the lips and the chin lie below the nose. Measured (stand-out x
-# the diagonal): the noses 0.0156-0.0205, the lips 0.0135-0.0189, a chin 0.0040, the MakeHuman
-# child's brow ridge, within TIP_DEPTH of its nose tip in its rendered face's frame, 0.0052
-# (within 0.08: 0.0243, as strong as its nose's 0.0274: the broad surroundings hide it).
+# The nose tip: the front-most midline vertex, unless one of the midline's bumps (each the
+# front-most vertex within BUMP x the diagonal of itself) no more than TIP_DEPTH behind it and
+# standing out of the surface within SURROUNDINGS of it at least STRONG as far as the bump that
+# stands out most lies above it: then the uppermost such bump. A face whose lower lip reaches
+# further forward than its nose has the lip front-most (ICT identity 6); the lips and the chin
+# lie below the nose. Measured (stand-out x the diagonal): the noses 0.0156-0.0205, the lips
+# 0.0135-0.0189, a chin 0.0040, the MakeHuman child's brow ridge, within TIP_DEPTH of its nose tip
+# in its rendered face's frame, 0.0052 (within 0.08: 0.0243, as strong as its nose's 0.0274: the
+# broad surroundings hide it). On the 468-point canonical face the front-most vertex (4) stands
+# out 0.0095 and the one below it (1) 0.0137: the tip stays the front-most.
 BUMP, TIP_DEPTH, SURROUNDINGS, STRONG = 0.02, 0.03, 0.04, 0.7
 
 
 def _nose_tip(q, used, diag):
-    """The nose tip (the uppermost strong bump of the midline's front), and the vertices near
-    the midline."""
+    """The nose tip (the front-most midline vertex, or the uppermost strong bump above it), and
+    the vertices near the midline."""
     near_mid = used[np.abs(q[used, 0]) < 0.03 * diag]
     if not len(near_mid):
         raise _not_found("nose tip (no surface near its symmetry plane)")
@@ -255,8 +257,9 @@ def _nose_tip(q, used, diag):
     surface = q[used]
     around = cKDTree(surface).query_ball_point(q[bumps], SURROUNDINGS * diag)
     stands_out = np.array([q[b, 2] - surface[near, 2].mean() for b, near in zip(bumps, around)])
-    strong = bumps[stands_out >= STRONG * stands_out.max()]
-    return strong[np.argmax(q[strong, 1])], near_mid
+    front_most = near_mid[np.argmax(q[near_mid, 2])]
+    candidates = np.append(bumps[stands_out >= STRONG * stands_out.max()], front_most)
+    return candidates[np.argmax(q[candidates, 1])], near_mid
 
 
 def _head_extremes(q, used, near_mid, tip, height, diag):
