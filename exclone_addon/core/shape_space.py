@@ -5,8 +5,9 @@ identity model's first modes) is first made the face of that space nearest the t
 similarity refined with it; the non-rigid registration then starts from that face rather than
 from the rigidly aligned neutral. The registration stops in the minimum its first steps lead to
 (docs/method.md §6), and from a face of the target's proportions that is the right one: on new ICT
-identities the source's points land 0.07-0.11% of the diagonal from their true places on average
-against 0.58-1.54% from the neutral.
+identities the source's points land 0.07-0.19% of the diagonal from their true places on average
+against 0.53-1.80% from the neutral. A face the space does not make (its weights implausible) is
+left to start from the neutral.
 
 The fit is Gauss-Newton on point-to-plane distances to the target's closest points (a small share
 of the point-to-point distance keeps sliding bounded), the similarity linearised beside the modes'
@@ -18,7 +19,7 @@ from scipy.stats import chi2
 from scipy.spatial.transform import Rotation
 
 from .proximity import interpolate
-from .registration import closest_valid_points
+from .registration import Schedule, closest_valid_points
 
 # What the modes leave unexplained of a face, x the target's diagonal: the prior's scale (a
 # weight's standard deviation is 1).
@@ -31,13 +32,12 @@ WEIGHT_BOUND = 3.0
 PLAUSIBLE = 0.999
 # The point-to-point share beside the point-to-plane distance.
 ALONG_SURFACE = 0.05
-# Gauss-Newton steps (it settles in 3-5) and the step (x diagonal) below which it stops.
+# Gauss-Newton steps (it settles in 3-5), and the largest move of a point (x diagonal) below
+# which it stops.
 STEPS = 8
 SETTLED = 1e-5
 # Points the fit reads (evenly over the region's vertices): enough for 30 modes and a similarity.
 SAMPLE = 2000
-# Border points match the target's border within this (x diagonal), as the registration's do.
-BORDER_DISTANCE = 0.02
 
 
 def fit_shape_space(aligned, target, modes, max_distance):
@@ -52,26 +52,29 @@ def fit_shape_space(aligned, target, modes, max_distance):
     modes, moved).
     """
     diagonal = target.diagonal
+    # border points match the target's border as the registration's do
+    border_distance = Schedule().border_distance * diagonal
     ids = aligned.used[::max(1, len(aligned.used) // SAMPLE)]
     neutral, modes = aligned.vertices.copy(), np.array(modes, dtype=np.float64)
-    weights = np.zeros(len(modes))
+    k = len(modes)
+    weights = np.zeros(k)
     total_r, total_s, total_t = np.eye(3), 1.0, np.zeros(3)
-    for step_count in range(STEPS):
-        face = neutral + np.tensordot(weights, modes, 1)
+    face = neutral
+    for _ in range(STEPS):
         step, centre = _gauss_newton_step(aligned.moved(face), ids, target, modes, weights,
-                                          max_distance * diagonal, BORDER_DISTANCE * diagonal)
+                                          max_distance * diagonal, border_distance)
         if step is None:
             break
-        k = len(modes)
         weights = weights + step[:k]
         r = Rotation.from_rotvec(step[k:k + 3]).as_matrix()
-        s, t = 1.0 + step[k + 6], centre + step[k + 3:k + 6] - (1.0 + step[k + 6]) * r @ centre
+        s = 1.0 + step[k + 6]
+        t = centre + step[k + 3:k + 6] - s * r @ centre
         neutral, modes = neutral @ r.T * s + t, modes @ r.T * s
         total_r, total_s, total_t = r @ total_r, s * total_s, s * (r @ total_t) + t
-        moved = np.abs(step[k:]).max() * diagonal + np.abs(np.tensordot(step[:k], modes, 1)).max()
-        if moved < SETTLED * diagonal:
+        moved, face = face, neutral + np.tensordot(weights, modes, 1)
+        if np.abs(face[ids] - moved[ids]).max() < SETTLED * diagonal:
             break
-    return total_r, total_s, total_t, weights, neutral + np.tensordot(weights, modes, 1)
+    return total_r, total_s, total_t, weights, face
 
 
 def plausible(weights):
