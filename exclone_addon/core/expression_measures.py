@@ -348,11 +348,11 @@ class _Lids:
                     if whole and width == VIEW_WIDTH and look >= 1:
                         break
                 width = VIEW_WIDTH if found is not None and found[1] else WIDE_VIEW
-            found = dict(vars(self))
+            from_corners = dict(vars(self))
             self._find(vertices, triangles, opening)
             if self.rest is None or np.any(self.rest <= 0):      # the ends read no better
                 vars(self).clear()
-                vars(self).update(found)
+                vars(self).update(from_corners)
 
     def _find(self, vertices, triangles, opening):
         self.opening = opening

@@ -55,7 +55,8 @@ def fit_shape_space(aligned, target, modes, max_distance):
     # border points match the target's border as the registration's do
     border_distance = Schedule().border_distance * diagonal
     ids = aligned.used[::max(1, len(aligned.used) // SAMPLE)]
-    neutral, modes = aligned.vertices.copy(), np.array(modes, dtype=np.float64)
+    # never changed in place (each step makes new arrays): no copies
+    neutral, modes = aligned.vertices, np.asarray(modes, dtype=np.float64)
     k = len(modes)
     weights = np.zeros(k)
     total_r, total_s, total_t = np.eye(3), 1.0, np.zeros(3)
