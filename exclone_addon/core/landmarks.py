@@ -251,12 +251,19 @@ def _nose_tip(q, used, diag):
     if not len(near_mid):
         raise _not_found("nose tip (no surface near its symmetry plane)")
     front = near_mid[q[near_mid, 2] >= q[near_mid, 2].max() - TIP_DEPTH * diag]
-    midline = cKDTree(q[near_mid])
-    bumps = np.array([c for c, near in zip(front, midline.query_ball_point(q[front], BUMP * diag))
-                      if q[c, 2] >= q[near_mid[near], 2].max()])
-    surface = q[used]
-    around = cKDTree(surface).query_ball_point(q[bumps], SURROUNDINGS * diag)
-    stands_out = np.array([q[b, 2] - surface[near, 2].mean() for b, near in zip(bumps, around)])
+    # a front vertex is a bump unless one further forward lies within BUMP (any such is in front
+    # too): the pairs within BUMP, each pair's hindmost struck out
+    pairs = cKDTree(q[front]).query_pairs(BUMP * diag, output_type="ndarray")
+    depth = q[front, 2]
+    first, second = depth[pairs[:, 0]], depth[pairs[:, 1]]
+    bump = np.ones(len(front), dtype=bool)
+    bump[pairs[first < second, 0]] = False
+    bump[pairs[second < first, 1]] = False
+    bumps = front[bump]
+    # each bump's surroundings measured directly: a few bumps, no tree over the whole surface
+    surface, reach = q[used], (SURROUNDINGS * diag) ** 2
+    stands_out = np.array([q[b, 2] - surface[((surface - q[b]) ** 2).sum(axis=1) <= reach, 2].mean()
+                           for b in bumps])
     front_most = near_mid[np.argmax(q[near_mid, 2])]
     candidates = np.append(bumps[stands_out >= STRONG * stands_out.max()], front_most)
     return candidates[np.argmax(q[candidates, 1])], near_mid
