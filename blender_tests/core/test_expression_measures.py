@@ -375,10 +375,10 @@ def test_a_real_clone_onto_the_demo_head_is_measured():
     # what the current engine demonstrably does: the blink stays on its own side
     assert found["eyeBlink_L"]["eyelid_gap_right"] == pytest.approx(1.0, abs=0.1)
     assert found["eyeBlink_R"]["eyelid_gap_left"] == pytest.approx(1.0, abs=0.1)
-    # the rims' positional goals (core.rims) close the lids as far as the source's own rows
-    # close, station by station: measured 5.6% (left) and 7.6% (right) of the open height left
-    # at the inner station (ICT's own blink leaves 9.7% and 7.2% there; the goals at the rims'
-    # images left 2.0% and 5.2%, without goals 15.6% and 16.6%); the bar is 10% along the lid
+    # the rims' positional goals (core.rims) bring a closing eye's rows together: measured 0.5%
+    # (left) and 0.5% (right) of the open height left (ICT's own blink leaves 8-10% at the inner
+    # station; the station goals alone left 7.1% and 6.3%, the goals at the rims' images 2.0% and
+    # 5.2%, no goals 15.6% and 16.6%); the bar is 10% along the lid
     assert found["eyeBlink_L"]["eyelid_gap_left"] < 0.1
     assert found["eyeBlink_R"]["eyelid_gap_right"] < 0.1
     assert found["jawOpen"]["lip_gap"] > 0.01

@@ -17,8 +17,8 @@ belongs on the target (the identity's own vertex, moved) and every expression's 
 - the blinks (issue #10 item 1, core.expression_measures): each eyeBlink's remaining gap, a share
   of the eye's open height, on its own side, and the other eye's.
 
-The bars not met are kept as strict xfails carrying the measured figures; what is reached is
-asserted with a small margin (seeds 1 and 2: two faces, so the figures are not one face's).
+The bars are asserted, and what is reached with a small margin (seeds 1 and 2: two faces, so
+the figures are not one face's).
 """
 import numpy as np
 import pytest
@@ -49,11 +49,14 @@ MEAN_BAR, P95_BAR, RATIO_BAR = 0.003, 0.008, 1.3
 # alike: the exact registration's error without them was the ratio's base before (2.75x / 2.11x).
 REACHED = {1: (0.0011, 0.0027, 1.02, 1.28), 2: (0.0009, 0.0021, 1.11, 1.16)}
 MARGIN = 1.1
-# The blinks' remaining gap (x the open height) on the closing eye, reached (seed 1's right eye
-# was not measured and its left read 0.375 over the inner half of the opening alone), and the
-# issue's bar; the other eye stays open (its gap at least OTHER_OPEN).
-BLINK_REACHED = {1: {"eyeBlink_L": 0.121, "eyeBlink_R": 0.108},
-                 2: {"eyeBlink_L": 0.102, "eyeBlink_R": 0.115}}
+# The blinks' remaining gap (x the open height) on the closing eye, reached (checked within
+# BLINK_MARGIN), and the issue's bar; the other eye stays open (its gap at least OTHER_OPEN). The
+# source's own blinks leave 0.079 / 0.085 at the inner station (0.2 of the width); matched to it
+# linearly (the rows' motions up alone, not their slide along the opening) the clones left 0.121
+# / 0.108 (seed 1) and 0.102 / 0.115 (seed 2) there; now the rows meet where the source's do.
+BLINK_REACHED = {1: {"eyeBlink_L": 0.004, "eyeBlink_R": 0.009},
+                 2: {"eyeBlink_L": 0.007, "eyeBlink_R": 0.003}}
+BLINK_MARGIN = 0.01
 BLINK_BAR, OTHER_OPEN = 0.1, 0.95
 # The shape modes the registration starts from when the face is drawn beyond them.
 BEYOND = 20
@@ -135,16 +138,10 @@ def test_the_registration_reaches_what_it_reached(identity):
 def test_both_blinks_are_measured_and_close(identity):
     for name, (gap, other) in identity["blinks"].items():
         assert gap is not None and other is not None, identity["text"]
-        assert gap <= MARGIN * BLINK_REACHED[identity["seed"]][name], identity["text"]
+        assert gap <= BLINK_REACHED[identity["seed"]][name] + BLINK_MARGIN, identity["text"]
         assert other >= OTHER_OPEN, identity["text"]
 
 
-@pytest.mark.xfail(strict=True, reason="measured: eyeBlink_L / eyeBlink_R leave 0.121 / 0.108 "
-                                       "(seed 1), 0.102 / 0.115 (seed 2) of the open height at "
-                                       "the inner station (0.2 of the width), where the "
-                                       "source's own blinks leave 0.097 / 0.072 of its open "
-                                       "height: the rims close the lids as far as the source's "
-                                       "do, station by station, and a little short of that")
 def test_blinks_meet_the_bar(identity):
     assert all(gap <= BLINK_BAR for gap, _ in identity["blinks"].values()), identity["text"]
 
