@@ -24,10 +24,12 @@ from exclone_addon.core.library import load_library
 EXPRESSIONS = ["eyeBlink_L", "eyeBlink_R", "jawOpen", "mouthClose"]
 BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this share of its opening
 # file -> (face object, the flipped triangles at jawOpen: the more of .venv's and .venv313's).
-# Blinks measured with numpy 1.26 and numpy 2 alike: male body 8.0% / 7.8% (ICT's own blink leaves 9.7%
-# and 7.2% at the inner station), child body 7.7% / 4.9%, stylised head 7.7% / 5.4%, old woman's
-# body (the fbx's Body object alone) 6.7% / 4.6%, the 485-vertex low-poly head 9.3% / 7.5% (rows
-# of three or four vertices; its corners the openings' ends as seen). With the rims' pull at a
+# Blinks (.venv): male body 1.0% / 0.5%, child body 1.1% / 1.1%, stylised head 0.5% / 0.6%, old
+# woman's body (the fbx's Body object alone) 0.8% / 0.3%, the 485-vertex low-poly head 4.2% / 4.5%
+# (rows of three or four vertices; its corners the openings' ends as seen), since a closing eye's
+# rows are brought together as the measures read them (core.rims._GapMatch.closed). With the
+# station goals alone (numpy 1.26 and 2 alike): 8.0% / 7.8% (ICT's own blink leaves 8-10% at the
+# inner station), 7.7% / 4.9%, 7.7% / 5.4%, 6.7% / 4.6%, 9.3% / 7.5%. With the rims' pull at a
 # hundredth (rims.STATION_WEIGHT), short of their goals: 9.3% / 9.1%, 7.7-7.8% / 5.2-5.4%, 8.0% /
 # 6.1%, 7.4% / 4.1%, the low-poly head 13.3% / 11.6%; before the rims' goals were matched to the
 # rows' gap: 9.4% / 9.4%, 6.8% / 4.9-5.1%, 7.8% / 5.9%, 8.0% / 4.9% (the low-poly head's left
