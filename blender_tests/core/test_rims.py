@@ -240,6 +240,23 @@ def test_a_closing_eye_closes_as_read_though_the_source_slides_along_the_opening
     assert left.min() >= min(source_left.min(), 0.0) - 0.05, (left, source_left)
 
 
+def test_lids_that_touch_at_one_station_of_an_open_eye_are_not_closed():
+    # the source's upper row comes down onto the lower one at its first stations only (a lid
+    # lowered at the inner corner, the rest of the eye half open): the target's rows follow the
+    # source's gap, station by station, rather than meeting along the whole lid (the source
+    # 0 at 0.2 of the width, 0.19 at 0.3, 0.5 from 0.4 on; the target 0.29-0.52 from 0.3 on, and
+    # at most 0.024 were lids that meet anywhere taken for a closing eye)
+    (lids, vertices), (source_lids, source_vertices), blink = coarse_and_dense_eyes()
+    upper = source_lids.upper[2:]
+    stations = source_vertices[upper, 0]
+    blink[0, upper, 1] *= np.interp(stations, [0.27, 0.35], [1.0, 0.5])
+    source_left = lids_gaps(source_lids, source_vertices + blink[0]) / source_lids.rest
+    assert source_left.min() <= 0.0 and source_left.mean() > rims.CLOSING
+    eye = rims._StationRims(lids, source_lids, vertices, source_vertices)
+    left = lids_gaps(lids, goals_applied(eye, vertices, eye.motion(blink)[0])) / lids.rest
+    assert left.max() > 0.4, (left, source_left)
+
+
 def test_the_lids_thickness_behind_their_edges_is_carried_with_them():
     # behind each row: a vertex of the lid's thickness (a tenth of the open height behind the
     # edge, towards the opening's middle) is carried with the row at its station; the skin

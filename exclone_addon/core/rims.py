@@ -74,6 +74,11 @@ GAP_GOALS = 0.01
 # Rounds of closing an eye whose source's lids meet, its rows read as the measures read them
 # (_GapMatch.closed): 4 and 8 the same to 0.001 of the open height.
 MEETING_ROUNDS = 4
+# A source's eye closes where its lids meet at a measured station and stand on average over
+# them no further apart than this share of their open height: the library's blinks -0.03 / -0.02
+# (they cross in the middle, 8-10% open at the inner corner), its eyeLookDown 0.35 (no station
+# meets). Lids that touch at one station of a lid left open elsewhere are not a closing eye.
+CLOSING = 0.2
 # A lid's thickness behind its edge (the rows' vertices carried with the edge) lies no further
 # behind it than this x the open height at its station: ICT's lids within 0.46 (their edge
 # alone held, the thickness behind the outer half, which the transfer closed where the edge
@@ -319,8 +324,9 @@ class _GapMatch:
                                               + GAP_GOALS * self.own)
 
     def closed(self, goals, source_moves, source_up):
-        """goals (E, k, 2) (up, along), where the source's lids meet (its rows' gap, read as the
-        measures read it, at or below nought at a measured station) with the motions up refitted
+        """goals (E, k, 2) (up, along), where the source's eye closes (its rows' gap, read as the
+        measures read it, at or below nought at a measured station and on average over them
+        within CLOSING of the open height) with the motions up refitted
         (Gauss-Newton) so that the target's rows meet too, read alike, wherever the source's
         leave a gap: where they cross, the target's cross by the source's share. The rest
         unchanged. source_moves (E, m, 3): the source rim vertices' motions, source_up their
@@ -336,7 +342,9 @@ class _GapMatch:
         source_gaps = self._gaps(self.source_opening, self.source_rest + source_moves,
                                  self.source_rows)
         measured = (self.stations >= EYE_STATIONS[0]) & (self.stations <= EYE_STATIONS[-1])
-        closing = np.flatnonzero(np.any(source_gaps[:, measured] <= 0.0, axis=1))
+        shares = source_gaps[:, measured] / self.source_rest_gap[measured]
+        closing = np.flatnonzero((shares.min(axis=1, initial=np.inf) <= 0.0)
+                                 & (shares.mean(axis=1) <= CLOSING))
         wanted = np.minimum(self.ratio * (source_gaps[closing] - self.source_rest_gap)
                             + self.rest_gap, 0.0)
         own = source_up[closing] @ self.own.T                                  # (C, unique)
