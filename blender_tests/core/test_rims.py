@@ -186,10 +186,8 @@ def coarse_and_dense_eyes():
 
 
 def lids_gaps(lids, positions):
-    return (expression_measures.row_heights(lids.opening, positions[lids.upper],
-                                            expression_measures.EYE_STATIONS)
-            - expression_measures.row_heights(lids.opening, positions[lids.lower],
-                                              expression_measures.EYE_STATIONS))
+    return expression_measures.rows_gap(lids.opening, positions[lids.upper],
+                                        positions[lids.lower], expression_measures.EYE_STATIONS)
 
 
 def test_a_coarse_eye_closes_where_the_rows_are_straight_between_their_own_vertices():

@@ -325,6 +325,11 @@ def row_heights(opening, points, stations):
     return np.interp(stations, s[order], opening.height(points)[order])
 
 
+def rows_gap(opening, upper, lower, stations):
+    """(S,) the upper row's height over the lower row's at each station (rows of points)."""
+    return row_heights(opening, upper, stations) - row_heights(opening, lower, stations)
+
+
 class _Lids:
     """An eye's upper and lower lid edges (rows of vertices) and the gap between them at rest,
     at each of EYE_STATIONS. upper_margin, lower_margin: the rows with the skin beside a coarse
@@ -370,8 +375,7 @@ class _Lids:
 
     def gaps(self, positions):
         """(S,) height of the upper lid above the lower one at each station (the rest frame's up)."""
-        return (row_heights(self.opening, positions[self.upper], EYE_STATIONS)
-                - row_heights(self.opening, positions[self.lower], EYE_STATIONS))
+        return rows_gap(self.opening, positions[self.upper], positions[self.lower], EYE_STATIONS)
 
     def find_upper_lid(self, vertices, used):
         """The surface's vertices (`used`) over the opening's upper half at rest (upper_lid):

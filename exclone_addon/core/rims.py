@@ -42,7 +42,7 @@ import scipy.sparse as sp
 from scipy.spatial import ConvexHull, QhullError
 
 from . import expression_measures
-from .expression_measures import EYE_STATIONS, row_heights
+from .expression_measures import EYE_STATIONS, row_heights, rows_gap
 from .transfer import as_columns, as_rows, factorised
 
 # Weight of a rim vertex's goal per unit of squared target edge length (the region's mean). From
@@ -353,8 +353,10 @@ class _GapMatch:
             up = goals[e, :, 0] @ self.mean
             for _ in range(MEETING_ROUNDS):
                 moved = self.rest + goals[e] @ self.axes
-                gap = _gap_operator(self.opening, moved, *self.rows, self.stations) @ self.each
-                missing = meeting - self._gaps(self.opening, moved[None], self.rows)[0]
+                # the gap at the stations, linear in the rows' heights where they now stand
+                reading = _gap_operator(self.opening, moved, *self.rows, self.stations)
+                gap = reading @ self.each
+                missing = meeting - reading @ self.opening.height(moved)
                 normal = gap.T @ gap / GAP_STATIONS + GAP_GOALS * np.identity(len(up))
                 up = up + np.linalg.solve(normal, gap.T @ missing / GAP_STATIONS
                                           + GAP_GOALS * (near - up))
@@ -364,8 +366,7 @@ class _GapMatch:
     def _gaps(self, opening, rows, which):
         """(E, S) the upper row's height over the lower row's at the stations; rows (E, k, 3)."""
         upper, lower = which
-        return np.stack([row_heights(opening, points[upper], self.stations)
-                         - row_heights(opening, points[lower], self.stations)
+        return np.stack([rows_gap(opening, points[upper], points[lower], self.stations)
                          for points in rows])
 
 
@@ -379,8 +380,8 @@ def _height_ratio(lids, source_lids, vertices, source_vertices, stations):
 
 def _open_height(lids, vertices, stations):
     """(S,) the eye's rest gap between its margin rows at the stations."""
-    return (row_heights(lids.opening, vertices[lids.upper_margin], stations)
-            - row_heights(lids.opening, vertices[lids.lower_margin], stations))
+    return rows_gap(lids.opening, vertices[lids.upper_margin], vertices[lids.lower_margin],
+                    stations)
 
 
 def _interpolation(known, wanted):
