@@ -10,7 +10,8 @@ nothing outside the head moves, no edge stretched more than 2.5x beyond the sour
 (where that is not reached, the reached figure with a margin, named in REACHED), no more of the
 face turned over than the source's own unit turns over (MakeHuman's units turn some over
 themselves: mouth-open the inside of its lower lip, 98 triangles, each eye closure 17 at its inner
-corner), the closing eye closes and the other stays open, the mouth opens; and the motion is the
+corner) and, at mouth-open, none turned over where the source's unit turns over neither its image
+nor one beside it (expression_measures' excess_flips, item 1's jawOpen bar), the closing eye closes and the other stays open, the mouth opens; and the motion is the
 source's: at every named landmark the unit moves, the clone moves the same way (up for a smile's
 corners and a raised brow, down for a closing lid), and over the solved face the clone's motion
 points where the source's does at the corresponding points, at the same size relative to the
@@ -168,7 +169,7 @@ def cloned(target_name):
     print(f"\n{target_name}: " + "; ".join(
         f"{name}: " + ", ".join(f"{key} {row[key]:.3g}" for key in (
             "eyelid_gap_left", "eyelid_gap_right", "lid_overrun_left", "lid_overrun_right",
-            "lip_gap", "excess_stretch", "flipped_triangles", "motion_outside")
+            "lip_gap", "excess_stretch", "flipped_triangles", "excess_flips", "motion_outside")
             if row.get(key) is not None)
         for name, row in measures.items()))
     return face, result, measures, images, solved
@@ -238,6 +239,9 @@ def test_measures(target_name, unit):
         assert all(abs(row[f"eyelid_gap_{eye}"] - 1.0) <= OPEN_EYE for eye in ("left", "right"))
     if unit == "mouth-open":
         assert row["lip_gap"] > LIPS_PART, row
+        # item 1's jawOpen bar: no triangle turned over where the source's unit turns over
+        # neither its image nor one beside it (expression_measures' excess_flips)
+        assert row["excess_flips"] == 0, row
     elif unit != "mouth-pursing":               # the pursed lips part a little, as the source's
         assert abs(row["lip_gap"]) < LIPS_PART, row
     # the demo head is one piece: nothing but the solved skin may move. The ICT neutral's other

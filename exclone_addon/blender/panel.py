@@ -2,7 +2,7 @@
 import bpy
 
 from ..core.errors import ExCloneError
-from ..core.reports import stretch_phrase
+from ..core.reports import flips_phrase, stretch_phrase
 from . import character
 from . import landmarks as stored_landmarks
 from . import workflow
@@ -129,8 +129,8 @@ def _draw_measures(layout):
     column.label(text=f"jawOpen: lips {_percent(jaw, 1)} of the face apart")
     column.label(text=f"with mouthClose: {_percent(closed, 1)}")
     if found["worst_edge_stretch"] is not None:
-        column.label(text=f"{stretch_phrase(found)}, "
-                          f"{found['worst_flipped_triangles']} flipped")
+        column.label(text=stretch_phrase(found))
+        column.label(text=flips_phrase(found))
 
 
 def _foldout(layout, settings, shown):

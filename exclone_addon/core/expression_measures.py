@@ -20,10 +20,13 @@ followed by vertex id through every expression, so a lid that slides down reads 
 do. The lips are the upper and
 lower lip landmarks, which move with the lips however the mouth is modelled.
 """
+from functools import cached_property
+
 import numpy as np
 from scipy import ndimage
 
 from . import mesh
+from .deformation import triangle_adjacency
 from .face_render import Camera, render
 from .proximity import interpolate
 from .surface import Surface
@@ -471,7 +474,8 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     corresponding point, at rest and moved by each expression (source_images); with them
     excess_stretch is measured too (max over edges of the target's stretch / the source's stretch
     of the same edge's image, counted from 1: what the clone adds to the source's own stretch),
-    else None. openings: the rest target's Openings when found already (the clone's rims find
+    and excess_flips (the flipped triangles whose images the source does not turn over), else
+    None. openings: the rest target's Openings when found already (the clone's rims find
     them: CloneResult.openings); found here unless made on these vertices, triangles and
     landmarks.
     """
@@ -553,11 +557,31 @@ class _Shape:
         do is stretch more than its source does at the same place. Edges whose image on the
         source has collapsed to a point (no stretch to compare with) are left out."""
         if image_rest is None:
-            return {"excess_stretch": None,
-                    "excess_stretch_reason": "measured only beside the source's expressions"}
-        excess = excess_stretches(self.rest_lengths, self._lengths(self.vertices + delta),
-                                  self._lengths(image_rest), self._lengths(image_rest + image_delta))
-        return {"excess_stretch": float(excess.max(initial=1.0))}
+            reason = "measured only beside the source's expressions"
+            return {"excess_stretch": None, "excess_stretch_reason": reason,
+                    "excess_flips": None, "excess_flips_reason": reason}
+        moved, image_moved = self.vertices + delta, image_rest + image_delta
+        excess = excess_stretches(self.rest_lengths, self._lengths(moved),
+                                  self._lengths(image_rest), self._lengths(image_moved))
+        return {"excess_stretch": float(excess.max(initial=1.0)),
+                "excess_flips": int(self.excess_flips(moved, image_rest, image_moved).sum())}
+
+    def excess_flips(self, moved, image_rest, image_moved):
+        """(T,) bool: the triangles the expression turns over (turned_over) where the source's
+        expression turns over neither their images (their corners' images at rest image_rest
+        (n, 3) and moved image_moved (n, 3)) nor the images of the triangles beside them
+        (source_turns_beside). The flipped count's fair bar, as excess_stretch is the stretch's:
+        the library's own jawOpen turns 54 triangles of the inner lips over, rolling them into
+        the mouth, and a clone that follows it turns their images over too; a finer target's
+        turned stretch ends up to a triangle off the source's."""
+        flipped = turned_over(self.rest_normals, mesh.triangle_normals(moved, self.triangles))
+        image_flipped = turned_over(mesh.triangle_normals(image_rest, self.triangles),
+                                    mesh.triangle_normals(image_moved, self.triangles))
+        return flipped & ~image_flipped & ~source_turns_beside(image_flipped, self.beside)
+
+    @cached_property
+    def beside(self):
+        return triangle_adjacency(self.triangles)
 
 
 def excess_stretches(rest, deformed, image_rest, image_deformed):
@@ -570,6 +594,14 @@ def excess_stretches(rest, deformed, image_rest, image_deformed):
     # an edge the source shortens and the clone keeps is not stretched: the source's stretch
     # counts from 1
     return np.where(usable, (deformed / rest) / np.maximum(image_deformed / image_rest, 1.0), 0.0)
+
+
+def source_turns_beside(image_turned, beside):
+    """(k,) bool: the triangles whose neighbours' images the source turns over, from which images
+    it turns over (T,) bool and the triangles beside them (k x T, sparse 0/1 rows: rows of
+    deformation.triangle_adjacency). A triangle turned over there follows the source's own turn:
+    the edge of a turned stretch falls where the target's triangles end, not the source's."""
+    return beside @ image_turned.astype(np.float64) > 0
 
 
 def turned_over(rest_normals, normals):
@@ -661,8 +693,8 @@ def close_up_expressions(measures, names):
 def summary(measures):
     """The figures a user reads first, from measure_expressions' result: for each blink the
     closing eye's and the other eye's gap, the lip gap at jawOpen and jawOpen+mouthClose, and
-    the worst edge stretch, flipped-triangle count and motion outside with their expressions
-    (None where nothing stretched, flipped or moved). A figure that cannot be had (no such
+    the worst edge stretch, flipped-triangle counts (all, and beyond the source's) and motion
+    outside with their expressions (None where nothing stretched, flipped or moved). A figure that cannot be had (no such
     expression, no lids found) is None."""
     found = {}
     for name, (closing, other) in BLINKS.items():
@@ -673,7 +705,7 @@ def summary(measures):
         found[f"{name}_lip_gap"] = measures.get(name, {}).get("lip_gap")
     # the worst figure's expression is named only where something changed at all
     for key, unchanged in (("edge_stretch", 1.0), ("excess_stretch", 1.0),
-                           ("flipped_triangles", 0), ("motion_outside", 0.0)):
+                           ("flipped_triangles", 0), ("excess_flips", 0), ("motion_outside", 0.0)):
         known = [name for name in measures if measures[name].get(key) is not None]
         worst = max(known, key=lambda name: measures[name][key], default=None)
         figure = None if worst is None else measures[worst][key]

@@ -34,9 +34,9 @@ def summary(added, replaced, skipped, seconds, quality):
 
 def measures_clause(summary):
     """The expression measures in one short clause, e.g. "blink gap L 5% R 8%, stretch 2.1x the
-    source's, 11 flipped" from expression_measures.summary ("" if nothing was measured). The
-    stretch is the excess over the source's own where the source was measured beside the clone
-    (a jawOpen stretches the source's lips too), else the raw edge stretch."""
+    source's, 11 flipped, 0 beyond the source's" from expression_measures.summary ("" if nothing
+    was measured). The stretch is the excess over the source's own where the source was measured
+    beside the clone (a jawOpen stretches the source's lips too), else the raw edge stretch."""
     parts = []
     gaps = [(side, summary.get(f"eyeBlink_{side}_gap")) for side in ("L", "R")]
     gaps = [f"{side} {100 * gap:.0f}%" for side, gap in gaps if gap is not None]
@@ -44,8 +44,16 @@ def measures_clause(summary):
         parts.append("blink gap " + " ".join(gaps))
     if summary.get("worst_edge_stretch") is not None:
         parts.append(stretch_phrase(summary))
-        parts.append(f"{summary['worst_flipped_triangles']} flipped")
+        parts.append(flips_phrase(summary))
     return ", ".join(parts)
+
+
+def flips_phrase(summary):
+    """"3 flipped, 0 beyond the source's" (the worst counts of expression_measures.summary; the
+    second where the source was measured beside the clone), else "3 flipped"."""
+    phrase = f"{summary['worst_flipped_triangles']} flipped"
+    excess = summary.get("worst_excess_flips")
+    return phrase if excess is None else f"{phrase}, {excess} beyond the source's"
 
 
 def stretch_phrase(summary):

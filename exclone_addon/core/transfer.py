@@ -40,7 +40,7 @@ except ImportError:     # an install without the bundled wheel: SuperLU serves a
     cholespy = None
 
 from . import deformation
-from .expression_measures import excess_stretches, turned_over
+from .expression_measures import excess_stretches, source_turns_beside, turned_over
 from .errors import ExCloneError
 from .mesh import triangle_normals, unique_edges, vertex_parts
 from .proximity import components_dot
@@ -595,7 +595,7 @@ class CorrespondedTransfer:
         turning = np.zeros(len(self.system.triangles), dtype=bool)
         turning[seen] = self.imaged_triangles[seen] & turned_over(image_normals[seen],
                                                                   image_moved)
-        own = ~turning[turned] & ~(near @ turning.astype(np.float64) > 0)
+        own = ~turning[turned] & ~source_turns_beside(turning, near)
         rows = np.searchsorted(seen, turned[own])
         return turned[own], _angles(image_normals[turned[own]], image_moved[rows])
 
