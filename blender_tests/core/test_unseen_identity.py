@@ -27,7 +27,7 @@ from blender_tests.helpers import ground_truth as gt
 from blender_tests.helpers.paths import SHARED_DATA
 from exclone_addon.core.cloning import (clone_expressions, fit_faces, fit_registered,
                                         transfer_expressions)
-from exclone_addon.core.expression_measures import BLINKS, measure_clone
+from exclone_addon.core.expression_measures import BLINKS, MEASURED_TOGETHER, measure_clone
 from exclone_addon.core.library import load_library
 from exclone_addon.core.mesh import PolyMesh, diagonal
 
@@ -113,7 +113,10 @@ def identity(request, library):
                "beyond": (float(beyond_error.mean()), float(np.quantile(beyond_error, 0.95))),
                "blinks": {name: (measures[name][f"eyelid_gap_{closing}"],
                                  measures[name][f"eyelid_gap_{other}"])
-                          for name, (closing, other) in BLINKS.items()}}
+                          for name, (closing, other) in BLINKS.items()},
+               "jaw": {key: measures["jawOpen"][key]
+                       for key in ("lip_gap", "excess_stretch", "excess_flips")},
+               "sealed": measures[MEASURED_TOGETHER]["lip_gap"]}
     figures["text"] = (f"seed {seed}: correspondence mean {100 * figures['mean']:.2f}%, "
                        f"95th percentile {100 * figures['p95']:.2f}% of the diagonal; transfer "
                        f"error {engine:.3f} against {best:.3f} from the exact registration "
@@ -122,11 +125,13 @@ def identity(request, library):
                        f"{clone.quality['landmark_count']} landmarks; from {BEYOND} modes: "
                        f"mean {100 * figures['beyond'][0]:.2f}%, 95th percentile "
                        f"{100 * figures['beyond'][1]:.2f}%; blinks (closing eye's gap, "
-                       f"the other's) {figures['blinks']}")
+                       f"the other's) {figures['blinks']}; jawOpen {figures['jaw']}, "
+                       f"sealed {figures['sealed']:.4f}")
     return figures
 
 
 def test_the_registration_reaches_what_it_reached(identity):
+    print("\n" + identity["text"])
     mean, p95, ratio, registration_ratio = REACHED[identity["seed"]]
     assert identity["shape_start"], identity["text"]      # a face of the library's space
     assert identity["mean"] <= MARGIN * mean, identity["text"]
@@ -144,6 +149,17 @@ def test_both_blinks_are_measured_and_close(identity):
 
 def test_blinks_meet_the_bar(identity):
     assert all(gap <= BLINK_BAR for gap, _ in identity["blinks"].values()), identity["text"]
+
+
+def test_the_mouth_meets_the_bars(identity):
+    """The issue's jawOpen bars on the new faces: the lips part, no edge stretched more than 2.5x
+    beyond the source's own stretch, no triangle turned over beyond the source's turns
+    (measured 1.27x / 1.30-1.31x, none, seeds 1 / 2), and at jawOpen + mouthClose the lips
+    sealed: no more than 0.2% of the diagonal further apart than at rest (-0.86% / -0.43%)."""
+    jaw = identity["jaw"]
+    assert jaw["lip_gap"] > 0.01, identity["text"]
+    assert jaw["excess_stretch"] <= 2.5 and jaw["excess_flips"] == 0, identity["text"]
+    assert identity["sealed"] <= 0.002, identity["text"]
 
 
 def test_correspondence_meets_the_bars(identity):
