@@ -474,8 +474,8 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     corresponding point, at rest and moved by each expression (source_images); with them
     excess_stretch is measured too (max over edges of the target's stretch / the source's stretch
     of the same edge's image, counted from 1: what the clone adds to the source's own stretch),
-    and excess_flips (the flipped triangles whose images the source does not turn over), else
-    None. openings: the rest target's Openings when found already (the clone's rims find
+    and excess_flips (the flipped triangles where the source turns over neither their images nor
+    those beside them: _Shape.excess_flips), else None. openings: the rest target's Openings when found already (the clone's rims find
     them: CloneResult.openings); found here unless made on these vertices, triangles and
     landmarks.
     """
@@ -581,6 +581,7 @@ class _Shape:
 
     @cached_property
     def beside(self):
+        """(T x T) the triangles sharing an edge, made when first needed."""
         return triangle_adjacency(self.triangles)
 
 
@@ -694,8 +695,8 @@ def summary(measures):
     """The figures a user reads first, from measure_expressions' result: for each blink the
     closing eye's and the other eye's gap, the lip gap at jawOpen and jawOpen+mouthClose, and
     the worst edge stretch, flipped-triangle counts (all, and beyond the source's) and motion
-    outside with their expressions (None where nothing stretched, flipped or moved). A figure that cannot be had (no such
-    expression, no lids found) is None."""
+    outside with their expressions (None where nothing stretched, flipped or moved). A figure
+    that cannot be had (no such expression, no lids found) is None."""
     found = {}
     for name, (closing, other) in BLINKS.items():
         row = measures.get(name, {})
