@@ -475,9 +475,9 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     excess_stretch is measured too (max over edges of the target's stretch / the source's stretch
     of the same edge's image, counted from 1: what the clone adds to the source's own stretch),
     and excess_flips (the flipped triangles where the source turns over neither their images nor
-    those beside them: _Shape.excess_flips), else None. openings: the rest target's Openings when found already (the clone's rims find
-    them: CloneResult.openings); found here unless made on these vertices, triangles and
-    landmarks.
+    those beside them: _Shape.excess_flips), else None. openings: the rest target's Openings when
+    found already (the clone's rims find them: CloneResult.openings); found here unless made on
+    these vertices, triangles and landmarks.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
