@@ -15,7 +15,8 @@ nor one beside it (expression_measures' excess_flips, item 1's jawOpen bar), the
 closes and the other stays open, the mouth opens; and the motion is the source's: at every named
 landmark the unit moves, the clone moves the same way (up for a smile's corners and a raised
 brow, down for a closing lid), and over the solved face the clone's motion points where the
-source's does at the corresponding points, at the same size relative to the face. Skipped without the shared data. Run with -s to see the figures."""
+source's does at the corresponding points, at the same size relative to the face. Skipped
+without the shared data. Run with -s to see the figures."""
 import json
 import os
 import re
