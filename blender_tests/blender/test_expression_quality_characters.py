@@ -53,7 +53,8 @@ BLINK_BAR = 0.10           # the issue's: a closing eye leaves at most this shar
 # core.transfer.TANGLED_WEIGHT: the child's and old woman's left are the library's own turn of
 # the lower lip's inside; 3 / 1, 2 / 2, 0 / 0, 0 / 0, 2 / 0 before, and earlier draws 4 / 1,
 # 0 / 2, 2 / 1); before the goals around a passing edge were capped
-# (core.transfer.STRETCH_BOUND): 2.39 / 2.94, 1.83 / 2.81, 1.70 / 1.72, 2.0 / 2.0, 3.43 / 3.36 (flips up to 4, 1, 0, 0, 3), each figure one draw from a wide spread
+# (core.transfer.STRETCH_BOUND): 2.39 / 2.94, 1.83 / 2.81, 1.70 / 1.72, 2.0 / 2.0, 3.43 / 3.36
+# (flips up to 4, 1, 0, 0, 3), each figure one draw from a wide spread
 # (over the head and 6 copies moved by 1e-12 of its diagonal, .venv: male up to 4.43, child 4.67,
 # low-poly 2.97; now 2.42, 1.87, 2.00, docs/method.md §8 "Stretch bounded"); before the straddling
 # images took their source triangles' mean gradient (core.transfer.STRADDLE): 2.39 / 2.94,
