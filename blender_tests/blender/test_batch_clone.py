@@ -311,7 +311,7 @@ def test_default_run_writes_blend_report_and_preview(default_run, head):
         assert name in result.stdout
     assert "shape keys added" in result.stdout.splitlines()[-1]
     assert re.search(r"^measures: blink gap L -?\d+% R -?\d+%, stretch [\d.]+x the source's, "
-                     r"\d+ flipped$",
+                     r"\d+ flipped, \d+ beyond the source's$",
                      result.stdout, re.MULTILINE), result.stdout
 
 
