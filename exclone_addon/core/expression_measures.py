@@ -20,8 +20,6 @@ followed by vertex id through every expression, so a lid that slides down reads 
 do. The lips are the upper and
 lower lip landmarks, which move with the lips however the mouth is modelled.
 """
-from functools import cached_property
-
 import numpy as np
 from scipy import ndimage
 
@@ -475,9 +473,9 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     excess_stretch is measured too (max over edges of the target's stretch / the source's stretch
     of the same edge's image, counted from 1: what the clone adds to the source's own stretch),
     and excess_flips (the flipped triangles where the source turns over neither their images nor
-    those beside them: _Shape.excess_flips), else None. openings: the rest target's Openings when
-    found already (the clone's rims find them: CloneResult.openings); found here unless made on
-    these vertices, triangles and landmarks.
+    those beside them: _Shape._beyond_source), else None. openings: the rest target's Openings
+    when found already (the clone's rims find them: CloneResult.openings); found here unless made
+    on these vertices, triangles and landmarks.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     triangles = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
@@ -496,9 +494,9 @@ def measure_expressions(vertices, triangles, deltas, names, landmark_names, land
     landmarks = {str(name): int(i) for name, i in zip(landmark_names, landmark_ids)}
     if openings is None or not openings.made_on(vertices, triangles, landmarks):
         openings = Openings(vertices, triangles, landmarks)
-    shape = _Shape(vertices, triangles, solved_vertices)
+    shape = _Shape(vertices, triangles, solved_vertices, image_rest)
     return {name: {**_opening_measures(openings, vertices + delta, shape.diagonal),
-                   **shape.measures(delta), **shape.excess(delta, image_rest, image_delta)}
+                   **shape.measures(delta, image_delta)}
             for name, delta, image_delta in zip(names, deltas, image_deltas)}
 
 
@@ -523,9 +521,12 @@ def _opening_measures(openings, positions, diagonal):
 
 
 class _Shape:
-    """What an expression does to the solved region's shape and to the rest of the mesh."""
+    """What an expression does to the solved region's shape and to the rest of the mesh, and
+    beyond what its source does at the same place where the source's images are given."""
 
-    def __init__(self, vertices, triangles, solved_vertices):
+    def __init__(self, vertices, triangles, solved_vertices, image_rest=None):
+        """image_rest (n, 3): the source at each vertex's corresponding point (source_images),
+        or None."""
         self.vertices, self.triangles = vertices, triangles
         self.edges = mesh.unique_edges(triangles)
         self.rest_lengths = self._lengths(vertices)
@@ -534,55 +535,59 @@ class _Shape:
         outside[np.asarray(solved_vertices, dtype=np.int64)] = False
         self.outside = np.flatnonzero(outside)
         self.diagonal = mesh.diagonal(vertices, np.unique(triangles))
+        self.image_rest = image_rest
+        if image_rest is not None:
+            self.image_rest_lengths = self._lengths(image_rest)
+            self.image_rest_normals = mesh.triangle_normals(image_rest, triangles)
+            self.beside = triangle_adjacency(triangles)
 
     def _lengths(self, positions):
         return np.linalg.norm(positions[self.edges[:, 1]] - positions[self.edges[:, 0]], axis=1)
 
-    def measures(self, delta):
+    def measures(self, delta, image_delta=None):
+        """The expression `delta` (n, 3)'s edge_stretch, flipped_triangles and motion_outside,
+        and with the source's image_delta (n, 3) beside it, _beyond_source's."""
         moved = self.vertices + delta
+        lengths = self._lengths(moved)
         usable = self.rest_lengths > 0
-        stretch = self._lengths(moved)[usable] / self.rest_lengths[usable]
+        stretch = lengths[usable] / self.rest_lengths[usable]
         flipped = turned_over(self.rest_normals, mesh.triangle_normals(moved, self.triangles))
         outside = np.linalg.norm(delta[self.outside], axis=1).max(initial=0.0)
         return {"edge_stretch": float(stretch.max(initial=1.0)),
                 "flipped_triangles": int(flipped.sum()),
-                "motion_outside": float(outside / self.diagonal)}
+                "motion_outside": float(outside / self.diagonal),
+                **self._beyond_source(lengths, flipped, image_delta)}
 
-    def excess(self, delta, image_rest, image_delta):
-        """{"excess_stretch": max over edges of the target's stretch / the source's stretch of
-        the edge's image (counted from 1: no less than 1)}, None (with the reason) without
-        images. Raw stretch is no fair bar:
-        real expressions stretch the short edges across a lid's or lip's thickness many times
+    def _beyond_source(self, lengths, flipped, image_delta):
+        """{"excess_stretch", "excess_flips"} of an expression whose edges' lengths (k,) and
+        flipped triangles (T,) are given, beside the source's image_delta (n, 3); None (with the
+        reason) without images.
+
+        excess_stretch: max over edges of the target's stretch / the source's stretch of the
+        edge's image (counted from 1: no less than 1). Raw stretch is no fair bar: real
+        expressions stretch the short edges across a lid's or lip's thickness many times
         (MakeHuman's own mouth-open 15x, the library's own jawOpen 37x); what the clone must not
         do is stretch more than its source does at the same place. Edges whose image on the
-        source has collapsed to a point (no stretch to compare with) are left out."""
-        if image_rest is None:
+        source has collapsed to a point (no stretch to compare with) are left out.
+
+        excess_flips: the flipped triangles where the source's expression turns over neither
+        their images nor the images of the triangles beside them (source_turns_beside). The
+        flipped count's fair bar, as excess_stretch is the stretch's: the library's own jawOpen
+        turns 54 triangles of the inner lips over, rolling them into the mouth, and a clone that
+        follows it turns their images over too; a finer target's turned stretch ends up to a
+        triangle off the source's."""
+        if self.image_rest is None:
             reason = "measured only beside the source's expressions"
             return {"excess_stretch": None, "excess_stretch_reason": reason,
                     "excess_flips": None, "excess_flips_reason": reason}
-        moved, image_moved = self.vertices + delta, image_rest + image_delta
-        excess = excess_stretches(self.rest_lengths, self._lengths(moved),
-                                  self._lengths(image_rest), self._lengths(image_moved))
-        return {"excess_stretch": float(excess.max(initial=1.0)),
-                "excess_flips": int(self.excess_flips(moved, image_rest, image_moved).sum())}
-
-    def excess_flips(self, moved, image_rest, image_moved):
-        """(T,) bool: the triangles the expression turns over (turned_over) where the source's
-        expression turns over neither their images (their corners' images at rest image_rest
-        (n, 3) and moved image_moved (n, 3)) nor the images of the triangles beside them
-        (source_turns_beside). The flipped count's fair bar, as excess_stretch is the stretch's:
-        the library's own jawOpen turns 54 triangles of the inner lips over, rolling them into
-        the mouth, and a clone that follows it turns their images over too; a finer target's
-        turned stretch ends up to a triangle off the source's."""
-        flipped = turned_over(self.rest_normals, mesh.triangle_normals(moved, self.triangles))
-        image_flipped = turned_over(mesh.triangle_normals(image_rest, self.triangles),
+        image_moved = self.image_rest + image_delta
+        excess = excess_stretches(self.rest_lengths, lengths, self.image_rest_lengths,
+                                  self._lengths(image_moved))
+        image_flipped = turned_over(self.image_rest_normals,
                                     mesh.triangle_normals(image_moved, self.triangles))
-        return flipped & ~image_flipped & ~source_turns_beside(image_flipped, self.beside)
-
-    @cached_property
-    def beside(self):
-        """(T x T) the triangles sharing an edge, made when first needed."""
-        return triangle_adjacency(self.triangles)
+        beyond = flipped & ~image_flipped & ~source_turns_beside(image_flipped, self.beside)
+        return {"excess_stretch": float(excess.max(initial=1.0)),
+                "excess_flips": int(beyond.sum())}
 
 
 def excess_stretches(rest, deformed, image_rest, image_deformed):
