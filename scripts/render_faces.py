@@ -30,6 +30,8 @@ BROW_POINTS = (70, 63, 105, 66, 107, 55, 65, 52, 53, 46, 300, 293, 334, 296, 336
 LIP_POINTS = (61, 146, 91, 181, 84, 17, 314, 405, 321, 375, 291, 185, 40, 39, 37, 0, 267, 269,
               270, 409, 78, 95, 88, 178, 87, 14, 317, 402, 318, 324, 308, 191, 80, 81, 82, 13,
               312, 311, 310, 415)
+# Workbench's own studio lights (what the appearance model's training takes are lit by).
+STUDIO_LIGHTS = ("Default", "basic.sl", "outdoor.sl", "paint.sl", "rim.sl", "studio.sl")
 IRIS_RADIUS_DEG = 30.0        # angular radius of the iris on the eyeball
 PUPIL_RADIUS_DEG = 13.0
 
@@ -77,7 +79,8 @@ class FaceRenderer:
     """A background-Blender scene holding one head mesh and a pinhole camera; render(points)
     places the head's vertices (camera space, OpenCV axes) and returns the BGR image."""
 
-    def __init__(self, triangles, colours, image_size=IMAGE_SIZE, focal_px=None, light="STUDIO"):
+    def __init__(self, triangles, colours, image_size=IMAGE_SIZE, focal_px=None, light="STUDIO",
+                 studio_light="Default"):
         bpy.ops.wm.read_factory_settings(use_empty=True)
         width, height = image_size
         self.image_size = (int(width), int(height))
@@ -101,7 +104,7 @@ class FaceRenderer:
         self.object = bpy.data.objects.new("face", mesh)
         scene.collection.objects.link(self.object)
         self._setup_camera(scene)
-        self._setup_look(scene, light)
+        self._setup_look(scene, light, studio_light)
 
     def _setup_camera(self, scene):
         width, height = self.image_size
@@ -118,10 +121,11 @@ class FaceRenderer:
         scene.render.resolution_x, scene.render.resolution_y = width, height
         scene.render.resolution_percentage = 100
 
-    def _setup_look(self, scene, light):
+    def _setup_look(self, scene, light, studio_light):
         scene.render.engine = 'BLENDER_WORKBENCH'
         shading = scene.display.shading
         shading.light = light
+        shading.studio_light = studio_light     # one of Workbench's own (STUDIO_LIGHTS)
         shading.color_type = 'VERTEX'
         shading.show_specular_highlight = False
         shading.show_cavity = False

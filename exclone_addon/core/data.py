@@ -1,12 +1,15 @@
 """The files ExClone ships: where each one lives and how it is read (the one owner of these paths).
 
 data/   the expression library, the demo head, MediaPipe's canonical face, and the files derived
-        from them at build time (the landmark template, the tracker model); licences beside them.
+        from them at build time (the landmark template, the tracker model, the appearance map);
+        licences beside them.
 models/ the face detector and landmark models, extracted from the mediapipe wheel by setup.
 """
 import json
 from functools import lru_cache
 from pathlib import Path
+
+import numpy as np
 
 from .errors import ExCloneError
 from .mesh import read_obj
@@ -20,6 +23,7 @@ DEMO_HEAD_FILE = DATA_DIR / "demo_head.obj"
 CANONICAL_FACE_FILE = DATA_DIR / "canonical_face.obj"
 LANDMARK_TEMPLATE_FILE = DATA_DIR / "landmark_template.json"
 TRACKER_MODEL_FILE = DATA_DIR / "tracker_model.npz"
+APPEARANCE_MAP_FILE = DATA_DIR / "appearance_map.npz"
 
 
 def _shipped(path, remedy):
@@ -34,6 +38,19 @@ def landmark_template():
     canonical_positions, canonical_normals and library_landmarks, each {name: value}."""
     path = _shipped(LANDMARK_TEMPLATE_FILE, "run scripts/make_landmark_template.py")
     return json.loads(path.read_text())
+
+
+def versioned_arrays(path, version, what, remedy):
+    """The arrays (a dict) of a file derived at build time, written with `format_version`
+    `version`; a missing file or another version is an ExCloneError naming `what` and the
+    `remedy`."""
+    path = Path(path)
+    if not path.is_file():
+        raise ExCloneError(f"{what} {path} is missing; {remedy}")
+    with np.load(path, allow_pickle=False) as stored:
+        if int(stored["format_version"]) != version:
+            raise ExCloneError(f"{what} {path} has an old format; {remedy}")
+        return dict(stored)
 
 
 def demo_head():

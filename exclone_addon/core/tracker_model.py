@@ -17,13 +17,11 @@ scripts/make_tracker_model.py, which renders in background Blender); loading it 
 """
 import functools
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import data
-from .errors import ExCloneError
 from .eyes import READING_MEASURES, EyeGeometry, EyeReading, EyeSlide, reading_measures
 from .library import load_library
 from .retarget import SurfaceLocations, locate_canonical_face
@@ -278,21 +276,14 @@ def write_tracker_model(locations, learned, path=data.TRACKER_MODEL_FILE):
 
 def read_tracker_locations(path=data.TRACKER_MODEL_FILE):
     """The shipped surface locations of the canonical face's points on the library's face."""
-    path = Path(path)
-    if not path.is_file():
-        raise ExCloneError(f"tracker model {path} is missing; {REMEDY}")
-    with np.load(path, allow_pickle=False) as stored:
-        if int(stored["format_version"]) != TRACKER_MODEL_VERSION:
-            raise ExCloneError(f"tracker model {path} has an old format; {REMEDY}")
-        return SurfaceLocations(stored["corners"].astype(np.int64),
-                                stored["bary"].astype(np.float64))
+    stored = data.versioned_arrays(path, TRACKER_MODEL_VERSION, "tracker model", REMEDY)
+    return SurfaceLocations(stored["corners"].astype(np.int64), stored["bary"].astype(np.float64))
 
 
 def read_learned_model(path=data.TRACKER_MODEL_FILE):
     """The shipped model learnt from FaceMesh's points (learn_tracker_model's arrays)."""
-    read_tracker_locations(path)          # the file's presence and format
-    with np.load(path, allow_pickle=False) as stored:
-        return {key: stored[key].astype(np.float64) for key in LEARNED_ARRAYS}
+    stored = data.versioned_arrays(path, TRACKER_MODEL_VERSION, "tracker model", REMEDY)
+    return {key: stored[key].astype(np.float64) for key in LEARNED_ARRAYS}
 
 
 @dataclass(frozen=True)
@@ -304,6 +295,7 @@ class TrackerModel:
     depth_weight: float = 0.1  # how much FaceMesh's depth counts in the fit (ShapeFitter)
     eye_slide: EyeSlide = None   # the eyes' reading's slide with the head's turn, if learnt
     pose_bias: np.ndarray = None   # (3, K + F) the fit's learnt rotation bias (learn_pose_bias)
+    expressions: np.ndarray = None   # (E, 468, 3) the library's expressions' located motion
 
     @classmethod
     def from_learned(cls, learned):
@@ -323,7 +315,7 @@ class TrackerModel:
                            pose_centre=learned["pose_centre"]), canonical.vertices, depth_weight=0.0,
                    eye_slide=None if learned.get("eye_pose_offsets") is None else
                    EyeSlide(learned["eye_pose_offsets"], learned["pose_centre"]),
-                   pose_bias=learned.get("pose_bias"))
+                   pose_bias=learned.get("pose_bias"), expressions=located)
 
     def unbiased_rotation(self, fit):
         """A fit's rotation less its learnt bias (learn_pose_bias); the fit's own without one."""

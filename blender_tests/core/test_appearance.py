@@ -1,0 +1,109 @@
+"""The face's appearance read for expressions (core.appearance) on known answers: a face image
+made by a known affine map comes back onto the frontal grid exactly, a brighter light reads the
+same, a map learnt from readings that are linear in known weights gives those weights back, and
+the shipped map's file is checked as the tracker model's is.
+"""
+import numpy as np
+import pytest
+
+from exclone_addon.core import data
+from exclone_addon.core.appearance import (FEATURES, FRONTAL_SIZE, FaceFrontaliser,
+                                           learn_appearance_map, read_appearance_map,
+                                           write_appearance_map)
+from exclone_addon.core.errors import ExCloneError
+from exclone_addon.core.library import load_library
+from exclone_addon.core.tracker_model import load_tracker_model
+from exclone_addon.core.tracking import FRONTAL
+
+
+def _grid_points(frontaliser, mean):
+    """The points' places on the frontal grid (as FaceFrontaliser lays them out)."""
+    seen = FRONTAL.apply(mean - mean.mean(axis=0))[:, :2]
+    low, high = seen.min(axis=0), seen.max(axis=0)
+    return (seen - low) * ((FRONTAL_SIZE[0] - 4) / (high[0] - low[0])) + 2.0
+
+
+def _ramp_image(affine, size=(640, 480)):
+    """A grey image whose value at pixel p is a known linear function of affine^-1 p."""
+    columns, rows = np.meshgrid(np.arange(size[0]), np.arange(size[1]))
+    pixels = np.stack((columns, rows), axis=-1).astype(np.float64)
+    grid = (pixels - affine[:, 2]) @ np.linalg.inv(affine[:, :2]).T
+    return (40.0 + 1.5 * grid[..., 0] + 0.8 * grid[..., 1]).astype(np.float32)
+
+
+def test_a_face_made_by_an_affine_map_comes_back_onto_the_grid():
+    mean = load_tracker_model().shape_model.mean
+    frontaliser = FaceFrontaliser(mean)
+    affine = np.array([[2.1, 0.3, 180.0], [-0.25, 2.0, 120.0]])   # turned, scaled, moved
+    on_grid = _grid_points(frontaliser, mean)
+    image_points = on_grid @ affine[:, :2].T + affine[:, 2]
+    frontal = frontaliser.frontal(_ramp_image(affine), image_points)
+    rows, columns = np.mgrid[0:FRONTAL_SIZE[1], 0:FRONTAL_SIZE[0]]
+    expected = 40.0 + 1.5 * columns + 0.8 * rows
+    inside = frontaliser.inside.reshape(FRONTAL_SIZE[1], FRONTAL_SIZE[0])
+    assert inside.mean() > 0.6
+    assert np.abs(frontal - expected)[inside].max() < 0.05
+
+
+def test_a_brighter_face_reads_the_same_and_off_the_face_reads_nought():
+    mean = load_tracker_model().shape_model.mean
+    frontaliser = FaceFrontaliser(mean)
+    affine = np.array([[2.0, 0.0, 200.0], [0.0, 2.0, 140.0]])
+    image_points = _grid_points(frontaliser, mean) @ affine[:, :2].T + affine[:, 2]
+    image = _ramp_image(affine)
+    reading = frontaliser.reading(image, image_points)
+    brighter = frontaliser.reading(1.6 * image, image_points)
+    assert reading.shape == (FEATURES,)
+    np.testing.assert_allclose(brighter, reading, atol=1e-5)
+    on_face = reading != 0
+    assert 0.5 < on_face.mean() < 1.0     # the grid's corners are off the face
+    assert np.median(reading[on_face]) == pytest.approx(1.0, abs=0.02)
+
+
+def test_a_map_learnt_from_linear_readings_gives_the_weights_back():
+    rng = np.random.default_rng(4)
+    keys, frames = 5, 600
+    effects = rng.normal(size=(keys, FEATURES))
+    weights = rng.uniform(0, 1, (frames, keys)) * (rng.uniform(size=(frames, keys)) < 0.4)
+    changes = weights @ effects + 0.01 * rng.normal(size=(frames, FEATURES))
+    motion = rng.normal(size=(keys, 468, 3))
+    learned = learn_appearance_map(changes, weights, [f"key{j}" for j in range(keys)], motion,
+                                   components=40, ridge=1e-6)
+    held_out = rng.uniform(0, 1, (50, keys))
+    read = np.array([learned.weights(change) for change in held_out @ effects])
+    np.testing.assert_allclose(read, held_out, atol=0.01)
+    np.testing.assert_allclose(learned.displacement(held_out[0] @ effects),
+                               np.tensordot(held_out[0], motion, axes=1), atol=0.05)
+    assert learned.weights(-3 * effects.sum(axis=0)).max() == 0.0     # bounded below by 0
+
+
+def test_the_map_file_round_trips_and_a_missing_or_old_one_says_what_to_run(tmp_path):
+    rng = np.random.default_rng(1)
+    changes, weights = rng.normal(size=(60, FEATURES)), rng.uniform(size=(60, 2))
+    learned = learn_appearance_map(changes, weights, ["jawOpen", "mouthPucker"],
+                                   np.zeros((2, 468, 3)), components=10, ridge=0.1)
+    path = tmp_path / "map.npz"
+    write_appearance_map(learned, path)
+    read = read_appearance_map(path)
+    assert read.names == ("jawOpen", "mouthPucker")
+    np.testing.assert_allclose(read.coefficients, learned.coefficients, rtol=1e-5, atol=1e-7)
+    with pytest.raises(ExCloneError, match="make_appearance_model"):
+        read_appearance_map(tmp_path / "missing.npz")
+    with np.load(path) as stored:
+        arrays = dict(stored)
+    arrays["format_version"] = np.int64(0)
+    np.savez(path, **arrays)
+    with pytest.raises(ExCloneError, match="old format"):
+        read_appearance_map(path)
+
+
+def test_the_shipped_map_reads_the_library_keys_the_eyes_do_not_as_the_tracker_moves_them():
+    """Its keys' motion is the shipped tracker model's: a map learnt before the tracker model
+    last changed fails here (run scripts/make_appearance_model.py)."""
+    shipped = read_appearance_map(data.APPEARANCE_MAP_FILE)
+    names = list(load_library().names)
+    assert shipped.coefficients.shape == (FEATURES, len(shipped.names))
+    assert "jawOpen" in shipped.names and not any(n.startswith("eye") for n in shipped.names)
+    tracked = load_tracker_model().expressions[[names.index(n) for n in shipped.names]]
+    np.testing.assert_allclose(shipped.motion, tracked, atol=1e-5)
+    assert 0.0 <= shipped.share <= 1.0

@@ -1,0 +1,137 @@
+"""What the face's own image says of its expression (docs/method.md §12).
+
+FaceMesh's points follow the frowns, brows, pucker and cheeks by a few pixels at most, about its
+own jitter; the shading and the painted edges of the face move plainly. So each frame the face
+is frontalised: a fixed grid over the tracker model's mean face seen from the front, each grid
+pixel taken from the image where the actor's calibrated neutral, posed as tracked, puts it (a
+piecewise-affine warp over the points' Delaunay triangles). The expression moves the face within
+that grid; the head's turn does not move it. Less the mean over the calibration frames (the
+actor's own neutral face) and divided by the face's median brightness, it is read by a linear
+map learnt at build time from rendered takes of ICT identities (scripts/make_appearance_model.py)
+into the library's keys the eyes do not read.
+"""
+from dataclasses import dataclass
+from functools import lru_cache
+import cv2
+import numpy as np
+from scipy.spatial import Delaunay
+
+from . import data
+from .tracking import FRONTAL
+
+FRONTAL_SIZE = (80, 96)       # the frontal grid (width, height), the face's width 76 pixels
+READING_SIZE = (40, 48)       # what the map reads: the grid averaged over 2x2 pixels
+FEATURES = READING_SIZE[0] * READING_SIZE[1]
+MAP_VERSION = 1
+REMEDY = "run scripts/make_appearance_model.py"
+
+
+class FaceFrontaliser:
+    """Warps a face in an image onto the frontal grid (FRONTAL_SIZE) from its points posed in
+    the image: mean_points (n, 3) in the model's axes fix where each point lies on the grid."""
+
+    def __init__(self, mean_points):
+        width, height = FRONTAL_SIZE
+        seen = FRONTAL.apply(mean_points - mean_points.mean(axis=0))[:, :2]
+        low, high = seen.min(axis=0), seen.max(axis=0)
+        on_grid = (seen - low) * ((width - 4) / (high[0] - low[0])) + 2.0
+        triangulation = Delaunay(on_grid)
+        rows, columns = np.mgrid[0:height, 0:width]
+        pixels = np.column_stack((columns.ravel(), rows.ravel())).astype(np.float64)
+        simplex = triangulation.find_simplex(pixels)
+        self.inside = simplex >= 0
+        affine = triangulation.transform[simplex[self.inside]]
+        first_two = np.einsum("nij,nj->ni", affine[:, :2], pixels[self.inside] - affine[:, 2])
+        self._bary = np.column_stack((first_two, 1.0 - first_two.sum(axis=1)))
+        self._corners = triangulation.simplices[simplex[self.inside]]
+        self._maps = np.full((len(pixels), 2), -1.0, dtype=np.float32)   # outside: no pixel
+        small = cv2.resize(self.inside.reshape(height, width).astype(np.float32), READING_SIZE,
+                           interpolation=cv2.INTER_AREA)
+        self._reading_mask = (small > 0.999).ravel()    # cells wholly on the face
+
+    def frontal(self, gray, image_points):
+        """The face on the grid (height, width) float32; image_points (n, 2): the points posed
+        in `gray`'s pixels."""
+        width, height = FRONTAL_SIZE
+        self._maps[self.inside] = np.einsum("nk,nkd->nd", self._bary, image_points[self._corners])
+        return cv2.remap(gray, self._maps[:, 0].reshape(height, width),
+                         self._maps[:, 1].reshape(height, width), cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE)
+
+    def reading(self, gray, image_points):
+        """(FEATURES,) the face on the grid at READING_SIZE, over its median brightness (a
+        brighter light or skin reads the same), nought off the face."""
+        face = cv2.resize(self.frontal(gray, image_points).astype(np.float32), READING_SIZE,
+                          interpolation=cv2.INTER_AREA).ravel()
+        reading = np.zeros(FEATURES)
+        on_face = face[self._reading_mask]
+        reading[self._reading_mask] = on_face / max(float(np.median(on_face)), 1.0)
+        return reading
+
+
+@dataclass(frozen=True)
+class AppearanceMap:
+    """keys' weights = clip((reading - neutral reading) @ coefficients + intercept, 0, 1); the
+    expression they make is their located motion at the tracker's points."""
+    names: tuple              # the library keys it reads
+    coefficients: np.ndarray  # (FEATURES, K)
+    intercept: np.ndarray     # (K,)
+    motion: np.ndarray        # (K, n, 3) each key's motion at the tracker's points (model axes)
+    # the appearance's share in the expression the avatar's keys follow, the points' the rest
+    share: float = 0.5
+
+    def weights(self, change):
+        """(K,) the keys' weights for a reading's change from the actor's neutral (FEATURES,)."""
+        return np.clip(change @ self.coefficients + self.intercept, 0.0, 1.0)
+
+    def displacement(self, change):
+        """(n, 3) the tracker's points' motion from the neutral for a reading's change."""
+        return np.tensordot(self.weights(change), self.motion, axes=1)
+
+
+def learn_appearance_map(changes, weights, names, motion, components, ridge):
+    """The map from readings' changes (F, FEATURES) to known weights (F, K) of keys `names`
+    moving the tracker's points by `motion` (K, n, 3): a ridge regression on the changes'
+    leading principal `components`, the penalty `ridge` times their mean variance."""
+    return learn_appearance_maps(changes, weights, names, motion, [(components, ridge)])[0]
+
+
+def learn_appearance_maps(changes, weights, names, motion, choices):
+    """learn_appearance_map for each (components, ridge) of `choices`, the principal axes
+    found once."""
+    centre = changes.mean(axis=0)
+    _, singular, axes = np.linalg.svd(changes - centre, full_matrices=False)
+    targets = weights - weights.mean(axis=0)
+    maps = []
+    for components, ridge in choices:
+        projection = axes[:components].T
+        scores = (changes - centre) @ projection
+        penalty = ridge * np.mean(singular[:components] ** 2)
+        solved = np.linalg.solve(scores.T @ scores + penalty * np.eye(components),
+                                 scores.T @ targets)
+        coefficients = projection @ solved
+        maps.append(AppearanceMap(tuple(names), coefficients,
+                                  weights.mean(axis=0) - centre @ coefficients, np.asarray(motion)))
+    return maps
+
+
+def write_appearance_map(learned, path=data.APPEARANCE_MAP_FILE):
+    np.savez_compressed(path, format_version=np.int64(MAP_VERSION),
+                        names=np.array(learned.names),
+                        coefficients=learned.coefficients.astype(np.float32),
+                        intercept=learned.intercept.astype(np.float32),
+                        motion=learned.motion.astype(np.float32), share=np.float64(learned.share))
+
+
+def read_appearance_map(path=data.APPEARANCE_MAP_FILE):
+    stored = data.versioned_arrays(path, MAP_VERSION, "appearance map", REMEDY)
+    return AppearanceMap(tuple(str(name) for name in stored["names"]),
+                         stored["coefficients"].astype(np.float64),
+                         stored["intercept"].astype(np.float64),
+                         stored["motion"].astype(np.float64), float(stored["share"]))
+
+
+@lru_cache(maxsize=1)
+def load_appearance_map():
+    """The bundled appearance map (data/appearance_map.npz), read once per process."""
+    return read_appearance_map()

@@ -1,0 +1,271 @@
+"""Write exclone_addon/data/appearance_model.npz, what the live session reads expressions from
+besides the points (core.appearance, docs/method.md §12):
+
+1. takes of ICT identities (none the tests' rendered takes use, none the tracker model learnt
+   from), each a second of a neutral face turning a little (the session's calibration) and then
+   random library expressions (1-2 keys at 0.3-1 rising and falling, neutral spells, the eyes
+   blinking and looking about on their own) with the head turning up to 30 / 20 / 12 deg, under
+   Workbench's studio lights, skin tinted; rendered in background Blender at 640x480 (about
+   0.35 CPU s a frame, cached in --work);
+2. each take tracked by core.session.FaceTrackingSession as a camera's frames are, and each
+   frame's face read as the session reads it (core.appearance: the face frontalised by the
+   tracked pose, less the take's calibrated neutral face);
+3. a ridge map from those readings to the library's keys the eyes do not read (and that move
+   the face)
+   (core.appearance.learn_appearance_map), its principal components and penalty chosen by
+   leaving a quarter of the takes out at a time;
+4. the appearance's share beside the points' in what the avatar's keys follow: some of the
+   takes left out tracked again onto their own heads with a map learnt without them, at each
+   share.
+
+Run it after make_tracker_model.py (the readings go through the tracker).
+
+    .venv/bin/python scripts/make_appearance_model.py [--work DIR] [--jobs N]
+"""
+import argparse
+import sys
+import tempfile
+import time
+from dataclasses import replace
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
+from pathlib import Path
+
+import cv2
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from exclone_addon.core import appearance  # noqa: E402
+from exclone_addon.core.data import APPEARANCE_MAP_FILE  # noqa: E402
+from exclone_addon.core.library import load_library  # noqa: E402
+from exclone_addon.core.retarget import AvatarRig  # noqa: E402
+from exclone_addon.core.session import FaceTrackingSession  # noqa: E402
+from exclone_addon.core.tracker_model import (EYE_KEY_PREFIX, load_tracker_model,  # noqa: E402
+                                              read_tracker_locations)
+from exclone_addon.core.tracking import FRONTAL, Camera  # noqa: E402
+from make_tracker_model import identity_vertices  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(REPO / "scripts"))     # render_faces (in each rendering process too)
+IDENTITIES = REPO.parent / "shared" / "data" / "ict-facekit" / "identities.npz"
+# ICT identity seeds: the tests' rendered takes use the bundled face and seed 7, the tracker
+# model seeds 101-108.
+TRAINING_IDENTITIES = tuple(range(301, 397))
+# Of those, the ones whose take holds a neutral face (the eyes still blinking and looking about)
+# while the head turns: a turning head changes the face's shading, which is no expression.
+NEUTRAL_IDENTITIES = tuple(range(349, 357)) + tuple(range(389, 397))
+TAKE_FRAMES = 360
+CALIBRATION_FRAMES = 30       # the session's default calibration: one second at 30 fps
+FPS = 30.0
+IMAGE_SIZE = (640, 480)
+TURN_DEG = (30.0, 20.0, 12.0)  # the largest turn about y, x, z (camera axes)
+BUMP_FRAMES = 20              # an expression rises and falls over this many frames
+BUMP_SPACING = 10             # one starts every this many frames (two overlap)
+NEUTRAL_SHARE = 0.2           # of the bumps, left out (a neutral spell)
+EYE_BUMP_FRAMES = 8           # a blink or a look: a quarter second
+EYE_SHARE = 0.3               # of the bump slots, where an eye key rises too
+RECIPE_VERSION = 1
+# What the map is chosen from: its principal components and ridge penalty (a share of their
+# mean variance), each pair scored by the mean correlation of its weights with the truth on
+# takes left out (FOLDS of them).
+COMPONENTS = (400, 800, 1500)
+RIDGES = (0.001, 0.01, 0.1)
+FOLDS = 4
+SHARES = (0.25, 0.5, 0.75, 1.0)
+SHARE_TAKES = 8     # of the first fold's takes, tracked at each share
+MOVES_CM = 0.01     # a key the map reads moves some tracker point this far (the pupils' do not)
+
+
+def _bump(frames):
+    return 0.5 - 0.5 * np.cos(2 * np.pi * np.arange(frames) / (frames - 1))
+
+
+def take_recipe(identity, names):
+    """(weights (T, E), rotations model -> camera (T), translations of the head's centre (T, 3),
+    skin tint, studio light) of one identity's take, from a generator seeded by the identity."""
+    rng = np.random.default_rng(2000 + identity)
+    eye_keys = [j for j, name in enumerate(names) if name.startswith(EYE_KEY_PREFIX)]
+    other_keys = [j for j in range(len(names)) if j not in eye_keys]
+    jaw, close = names.index("jawOpen"), names.index("mouthClose")
+    weights = np.zeros((TAKE_FRAMES, len(names)))
+    for start in range(CALIBRATION_FRAMES, TAKE_FRAMES - BUMP_FRAMES, BUMP_SPACING):
+        if rng.uniform() >= (1.0 if identity in NEUTRAL_IDENTITIES else NEUTRAL_SHARE):
+            keys = rng.choice(other_keys, rng.integers(1, 3), replace=False)
+            amounts = rng.uniform(0.3, 1.0, len(keys))
+            span = slice(start, start + BUMP_FRAMES)
+            weights[span, keys] += amounts * _bump(BUMP_FRAMES)[:, None]
+            if close in keys:       # the lips closed over an open jaw, as the library means it
+                weights[span, jaw] += amounts[list(keys).index(close)] * _bump(BUMP_FRAMES)
+        if rng.uniform() < EYE_SHARE:
+            key = rng.choice(eye_keys)
+            span = slice(start, start + EYE_BUMP_FRAMES)
+            weights[span, key] += rng.uniform(0.5, 1.0) * _bump(EYE_BUMP_FRAMES)
+    weights = np.clip(weights, 0.0, 1.0)
+    t = np.arange(TAKE_FRAMES) / FPS
+    since = t - CALIBRATION_FRAMES / FPS
+    size = rng.uniform(0.5, 1.0, 3) * TURN_DEG
+    frequency, phase = rng.uniform(0.1, 0.3, 3), rng.uniform(0, 2 * np.pi, 3)
+    ease = np.clip(since, 0.0, 1.0)[:, None]        # from still over the first second
+    angles = ease * size * np.sin(2 * np.pi * frequency * since[:, None] + phase)
+    c = t[:CALIBRATION_FRAMES]
+    angles[:CALIBRATION_FRAMES] = np.column_stack((10 * np.sin(2 * np.pi * c),
+                                                   6 * np.sin(4 * np.pi * c), 0 * c))
+    rotations = Rotation.from_euler("yxz", angles, degrees=True) * FRONTAL
+    translations = np.tile([rng.uniform(-3, 3), rng.uniform(-2, 2), rng.uniform(42, 58)],
+                           (TAKE_FRAMES, 1))
+    import render_faces     # needs bpy (its studio lights' names)
+    light = render_faces.STUDIO_LIGHTS[identity % len(render_faces.STUDIO_LIGHTS)]
+    return weights, rotations, translations, rng.uniform(0.75, 1.15), light
+
+
+def take_folder(work, identity):
+    return work / f"v{RECIPE_VERSION}-identity{identity}"
+
+
+def render_take(work, identity, identities_file):
+    """Renders one identity's take into its folder under `work` (frames already there are
+    kept); returns the frames' paths."""
+    import render_faces     # needs bpy
+    library = load_library()
+    names = list(library.names)
+    recipe = take_recipe(identity, names)
+    folder = take_folder(work, identity)
+    paths = [folder / f"frame_{k:04d}.png" for k in range(TAKE_FRAMES)]
+    if all(path.is_file() for path in paths):
+        return paths
+    weights, rotations, translations, tint, light = recipe
+    vertices = identity_vertices(library, identity, identities_file)
+    locations = read_tracker_locations()
+    colours = render_faces.vertex_colours(vertices, library.parts, locations.sample(vertices))
+    start, stop = library.parts["face"]
+    colours[start:stop] *= tint
+    renderer = render_faces.FaceRenderer(
+        render_faces.rendered_triangles(library.mesh.triangles(), library.parts), colours,
+        IMAGE_SIZE, studio_light=light)
+    centre = locations.sample(vertices).mean(axis=0)
+    folder.mkdir(parents=True, exist_ok=True)
+    begun = time.time()
+    for k, path in enumerate(paths):
+        if not path.is_file():
+            posed = vertices + np.tensordot(weights[k], library.deltas, axes=1)
+            renderer.render(rotations[k].apply(posed - centre) + translations[k], path)
+    print(f"make_appearance_model: identity {identity}: {len(paths)} frames in "
+          f"{time.time() - begun:.0f} s", flush=True)
+    return paths
+
+
+def read_take(paths, avatar=None, appearance_map=False):
+    """((T, appearance.FEATURES) each frame's reading as a tracking session makes it, (T, E)
+    the library keys' weights onto `avatar` read with `appearance_map`), NaN where the session
+    had no face or was calibrating (and without an avatar)."""
+    session = FaceTrackingSession(avatar=avatar, camera=Camera.from_image_size(*IMAGE_SIZE),
+                                  calibration_frames=CALIBRATION_FRAMES, appearance=appearance_map)
+    readings = np.full((len(paths), appearance.FEATURES), np.nan)
+    weights = np.full((len(paths), len(avatar.names) if avatar else 0), np.nan)
+    for k, path in enumerate(paths):
+        result = session.step(cv2.imread(str(path)), k / FPS)
+        if session.expression_reading is not None:
+            readings[k] = session.expression_reading
+        if result.weights is not None:
+            weights[k] = [result.weights[name] for name in avatar.names]
+    return readings, weights
+
+
+def held_out_scores(readings, weights, choices):
+    """Per (components, ridge) of `choices`, the mean correlation with the truth over the keys
+    (those that move in the frames left out) of maps learnt with the other folds of the takes
+    (lists of (T, FEATURES), (T, K))."""
+    scores = {choice: [] for choice in choices}
+    for fold in range(FOLDS):
+        learnt = [k for k in range(len(readings)) if k % FOLDS != fold]
+        left = [k for k in range(len(readings)) if k % FOLDS == fold]
+        maps = appearance.learn_appearance_maps(
+            np.vstack([readings[k] for k in learnt]), np.vstack([weights[k] for k in learnt]),
+            [], np.zeros((weights[0].shape[1], 0, 3)), choices)
+        truth = np.vstack([weights[k] for k in left])
+        changes = np.vstack([readings[k] for k in left])
+        moving = np.flatnonzero(truth.std(axis=0) > 0)
+        for choice, learned in zip(choices, maps):
+            read = np.array([learned.weights(change) for change in changes])
+            scores[choice] += [np.corrcoef(read[:, j], truth[:, j])[0, 1] for j in moving]
+    return {choice: float(np.nanmean(values)) for choice, values in scores.items()}
+
+
+def held_out_share(paths, truths, changes, weights, keys, names, motion, components, ridge,
+                   identities_file):
+    """The share (SHARES) whose weights correlate best with the truth, averaged over the keys
+    the map reads that move, on SHARE_TAKES takes of the first fold tracked onto their own
+    heads, and each share's score (lists by take: frame paths, true weights (T, E), and the
+    calibrated frames' readings and the map's keys' weights; keys: the map's)."""
+    library = load_library()
+    locations = read_tracker_locations()
+    learnt = [k for k in range(len(paths)) if k % FOLDS]
+    left = [k for k in range(len(paths)) if not k % FOLDS][:SHARE_TAKES]
+    learned = appearance.learn_appearance_map(
+        np.vstack([changes[k] for k in learnt]), np.vstack([weights[k] for k in learnt]),
+        [names[j] for j in keys], motion[keys], components, ridge)
+    read = {share: [] for share in SHARES}
+    for k in left:
+        head = identity_vertices(library, TRAINING_IDENTITIES[k], identities_file)
+        avatar = AvatarRig.from_locations(head, library.deltas, names, locations)
+        for share in SHARES:
+            read[share].append(read_take(paths[k], avatar, replace(learned, share=share))[1])
+    truth = np.vstack([truths[k] for k in left])[:, keys]
+    moving = np.flatnonzero(truth.std(axis=0) > 0)
+    scores = {}
+    for share, taken in read.items():
+        estimate = np.vstack(taken)[:, keys]
+        seen = np.all(np.isfinite(estimate), axis=1)
+        scores[share] = float(np.nanmean([np.corrcoef(estimate[seen, j], truth[seen, j])[0, 1]
+                                          for j in moving]))
+    return max(scores, key=scores.get), scores
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--work", type=Path,
+                        default=Path(tempfile.gettempdir()) / "exclone_appearance_training",
+                        help="where the training takes' frames are cached")
+    parser.add_argument("--identities", type=Path, default=IDENTITIES,
+                        help="ICT-FaceKit's identity model (identities.npz)")
+    parser.add_argument("--jobs", type=int, default=2, help="takes rendered at once")
+    args = parser.parse_args()
+    if not args.identities.is_file():
+        sys.exit(f"make_appearance_model: {args.identities} is missing "
+                 "(ICT-FaceKit's identity model)")
+    if args.jobs < 1:
+        sys.exit(f"make_appearance_model: --jobs must be at least 1, got {args.jobs}")
+    # each take in its own process: Blender's scene is one per process
+    with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+        takes = list(pool.map(render_take, [args.work] * len(TRAINING_IDENTITIES),
+                              TRAINING_IDENTITIES, [args.identities] * len(TRAINING_IDENTITIES)))
+    names = list(load_library().names)
+    motion = load_tracker_model().expressions
+    keys = [j for j, name in enumerate(names)
+            if not name.startswith(EYE_KEY_PREFIX) and np.abs(motion[j]).max() >= MOVES_CM]
+    readings = [read_take(paths)[0] for paths in takes]
+    truths = [take_recipe(identity, names)[0] for identity in TRAINING_IDENTITIES]
+    seen = [np.all(np.isfinite(read), axis=1) for read in readings]
+    changes = [read[ok] for read, ok in zip(readings, seen)]
+    weights = [truth[ok][:, keys] for truth, ok in zip(truths, seen)]
+    scores = held_out_scores(changes, weights,
+                             [(components, ridge) for components in COMPONENTS for ridge in RIDGES])
+    components, ridge = max(scores, key=scores.get)
+    print("make_appearance_model: held-out correlation by components and ridge: " +
+          ", ".join(f"{c} / {r}: {score:.3f}" for (c, r), score in scores.items()), flush=True)
+    share, share_scores = held_out_share(takes, truths, changes, weights, keys, names, motion,
+                                         components, ridge, args.identities)
+    print("make_appearance_model: held-out correlation by the appearance's share: " +
+          ", ".join(f"{s}: {score:.3f}" for s, score in share_scores.items()), flush=True)
+    learned = appearance.learn_appearance_map(np.vstack(changes), np.vstack(weights),
+                                              [names[j] for j in keys], motion[keys], components,
+                                              ridge)
+    appearance.write_appearance_map(replace(learned, share=share))
+    print(f"make_appearance_model: learnt from {sum(map(len, changes))} frames of "
+          f"{len(TRAINING_IDENTITIES)} takes ({components} components, ridge {ridge}, share "
+          f"{share}); wrote {APPEARANCE_MAP_FILE}")
+
+
+if __name__ == "__main__":
+    main()
