@@ -286,13 +286,13 @@ def ict_avatar(take):
     return AvatarRig.from_locations(take.vertices, take.deltas, take.names, read_tracker_locations())
 
 
-def track_rendered(take, avatar=None, tracker_model=None):
+def track_rendered(take, avatar=None, tracker_model=None, appearance=True):
     """The take's frames through FaceTrackingSession.step (what a camera feeds): weights by
     library key (T, E; NaN before calibration or without a face), model -> camera rotations
-    (None without a face), and the step's milliseconds."""
+    (None without a face), and the step's milliseconds. appearance: as the session's."""
     session = FaceTrackingSession(avatar=avatar if avatar is not None else ict_avatar(take),
                                   camera=take.camera, calibration_frames=take.calibration_frames,
-                                  tracker_model=tracker_model)
+                                  tracker_model=tracker_model, appearance=appearance)
     weights = np.full(take.truth.shape, np.nan)
     rotations, step_ms = [], []
     index = {name: j for j, name in enumerate(take.names)}
@@ -343,10 +343,11 @@ def unit_scores(take, tracked):
     return scores
 
 
-def largest_false_weight(take, tracked, only=""):
+def largest_false_weight(take, tracked, only="", but=None):
     """The largest weight after calibration on a take whose face stays neutral, and its key's
-    name, over the keys whose names start with `only` (default: every key)."""
-    keys = [j for j, name in enumerate(take.names) if name.startswith(only)]
+    name, over the keys whose names start with `only` (default: every key) and not with `but`."""
+    keys = [j for j, name in enumerate(take.names)
+            if name.startswith(only) and not (but and name.startswith(but))]
     weights = tracked.weights[take.calibration_frames:, keys]
     k, j = np.unravel_index(np.nanargmax(weights), weights.shape)
     return float(weights[k, j]), take.names[keys[j]]

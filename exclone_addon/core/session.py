@@ -10,7 +10,9 @@ neutral calibrated over the first frames with a face (core.tracking, §11); afte
 the shape parameters refitted with the material points, image points on texture tracked by
 optical flow (core.material_points, §11); One Euro filters on pose, shape and landmarks; then,
 with an avatar, its shape-key weights (core.retarget, §12): the eye keys with the eyes' lids and
-gaze (core.eyes) as further targets of the same bounded solve, the other keys from the
+gaze (core.eyes) as further targets of the same bounded solve, the other keys from the face's
+appearance (core.appearance: the face frontalised by the tracked pose, less the actor's
+calibrated neutral face, read by a map learnt from rendered faces), or without it from the
 landmarks alone.
 """
 import time
@@ -22,6 +24,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import data, eyes, face_models, threads
+from .appearance import FaceFrontaliser, load_appearance_map
 from .eyes import EyeGeometry
 from .errors import ExCloneError
 from .material_points import MaterialPoints
@@ -60,7 +63,17 @@ CROP_SHIFT = 0.04
 # its crops are made again, beside "fit"): the stages add up to more than the step. "fit" is the
 # step's own thread's part of the fit: its start from the frame before's fit is made on the iris
 # thread while FaceMesh runs.
-STAGES = ("detect", "landmarks", "iris", "fit", "material", "eyes", "weights")
+STAGES = ("detect", "landmarks", "iris", "fit", "material", "eyes", "appearance", "weights")
+
+
+def _face_crop(gray, points):
+    """(the grey image about a face's points, with a margin of a quarter of their box's size,
+    its top-left corner (2,) in the image's pixels)."""
+    low, high = points[:, :2].min(axis=0), points[:, :2].max(axis=0)
+    margin = 0.25 * (high - low)
+    x0, y0 = np.maximum(np.floor(low - margin), 0).astype(int)
+    x1, y1 = np.ceil(high + margin).astype(int) + 1
+    return gray[y0:y1, x0:x1].copy(), np.array([x0, y0], dtype=np.float64)
 
 
 class LandmarkFilter:
@@ -140,10 +153,14 @@ class FaceTrackingSession:
     still_images: every frame is an unrelated photograph (detection on each, no warm start, no
     temporal filtering, camera intrinsics from each image's size unless given). Otherwise the
     frames are a take from one camera and must all be one size.
+    appearance: what the face's appearance is read with (docs/method.md §12): True, the bundled
+    map (data/appearance_map.npz); an appearance.AppearanceMap; False, not read (the avatar's
+    keys follow the points and the eyes alone).
     """
 
     def __init__(self, avatar=None, camera=None, calibration_frames=30,
-                 models_dir=data.MODELS_DIR, tracker_model=None, still_images=False):
+                 models_dir=data.MODELS_DIR, tracker_model=None, still_images=False,
+                 appearance=True):
         self.avatar = avatar            # a retarget.AvatarRig, or None
         self.camera = camera
         self._fixed_camera = camera is not None
@@ -175,7 +192,16 @@ class FaceTrackingSession:
         self._eye_geometry = None
         self._eye_targets = None
         self._other_keys = None       # the keys the eyes' rows do not read (indices), if any
-        self._other_solver = None     # and their solve from the landmarks alone
+        self._other_solver = None     # and their solve from the landmarks or the appearance
+        # the face's appearance (core.appearance): read each frame once calibrated from images;
+        # the avatar's keys the eyes do not read follow it with `appearance`: True (the bundled
+        # map), an appearance.AppearanceMap, or False (the points alone)
+        self._frontaliser = FaceFrontaliser(self.model.mean)
+        self._appearance = appearance
+        self._appearance_map = None
+        self._neutral_reading = None  # the mean reading of the calibration frames
+        self.expression_reading = None   # this frame's reading less it (None: not read)
+        self._calibration_faces = []  # the calibration frames' faces: (grey crop, its corner)
         self._material = None         # the take's material points (after calibration, not stills)
         self._gray = None             # the frame being tracked, grey (None: landmarks given)
         self.take = RecordedTake()
@@ -212,6 +238,7 @@ class FaceTrackingSession:
             raise ExCloneError("calibration needs at least one frame")
         self._calibration_points = []
         self._calibration_eyes = []
+        self._calibration_faces = []
 
     def _reset_filters(self):
         # Cut-offs in Hz at rest; beta raises them with speed (rad/s, cm/s, parameter units/s,
@@ -322,10 +349,8 @@ class FaceTrackingSession:
         points, detected = self._find_face(image, timestamp, stage_ms)
         self._face_points = points
         flow = None if flow_run is None else flow_run.result()
-        if flow is not None:
-            self._gray = flow[3]
-        else:
-            self._gray = None if self.still_images else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+        gray = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if flow is None else flow[3]
+        self._gray = None if self.still_images else gray
         if points is None:
             wait([run for run in (fit_start, early_iris) if run is not None])
             return self._lost(stage_ms)
@@ -343,7 +368,7 @@ class FaceTrackingSession:
             roi = face_models.roi_from_landmarks(points)
             self._roi = roi if roi.size >= face_models.MIN_FACE_PIXELS else None
             return self._track(points, timestamp, stage_ms, restart=detected, iris_run=iris_run,
-                               flow=flow, fit_start=fit_start)
+                               flow=flow, fit_start=fit_start, gray=gray)
         finally:
             wait([iris_run])        # the network is free again when the step returns
 
@@ -400,6 +425,7 @@ class FaceTrackingSession:
     def _lost(self, stage_ms):
         self._roi = None
         self._previous_fit = self._fit_before = None
+        self.expression_reading = None
         last = self._last
         status = "no face in view: holding the last pose" if last else "no face in view"
         if last is None:
@@ -410,12 +436,13 @@ class FaceTrackingSession:
 
     # -- shape fit and calibration (docs/method.md §11), weights (§12)
     def _track(self, points, timestamp, stage_ms, restart, iris_run=None, depth=True,
-               flow=None, fit_start=None):
+               flow=None, fit_start=None, gray=None):
         """iris_run: a Future of _timed_iris or _early_iris (the iris network running beside
         FaceMesh or the fit), or None;
         flow: what _timed_flow returned (the material points tracked into this frame), or None;
         fit_start: a Future of the fit's start from _warm_start() (ShapeFitter.start_from), or
-        None."""
+        None;
+        gray: the frame in grey (None: landmarks given, no appearance to read)."""
         # the fit reads the points' relative depth (FaceMesh's z) too, when they have one
         observed = points if depth else points[:, :2]
         if restart or self.still_images:
@@ -456,16 +483,23 @@ class FaceTrackingSession:
                                                  self.eye_neutral.iris)
         stage_ms["eyes"] = 1000 * (time.perf_counter() - start)
         if self._pending:
-            fit = self._calibration_frame(observed, reading, fit, stage_ms)
+            fit = self._calibration_frame(observed, reading, fit, stage_ms, gray)
             reading = None       # not brought frontal: the eyes' rows join from the next frame
             pose = self._shown_pose(replace(fit, rotation=self._tracker_model.unbiased_rotation(fit)),
                                     points, timestamp)
+        self.expression_reading = None
+        if gray is not None and self._neutral_reading is not None:
+            start = time.perf_counter()
+            self.expression_reading = self._frontaliser.reading(
+                gray, self._posed_neutral(pose.rotation, pose.translation)) - self._neutral_reading
+            stage_ms["appearance"] = 1000 * (time.perf_counter() - start)
         head_rotation = weights = None
         if self.calibrated:
             relative = self.neutral_rotation.inv() * pose.rotation     # in the face's own axes
             head_rotation = MODEL_TO_BLENDER * relative * MODEL_TO_BLENDER.inv()
             if self.solver is not None:
-                weights = self._weights(pose.params, reading, timestamp, stage_ms)
+                weights = self._weights(pose.params, reading, self.expression_reading, timestamp,
+                                        stage_ms)
         if self._pending:
             status = f"calibrating {len(self._calibration_points)}/{self._pending}: hold a neutral face"
         else:
@@ -490,11 +524,14 @@ class FaceTrackingSession:
         return replace(last, rotation=last.rotation * before.rotation.inv() * last.rotation,
                        translation=2.0 * last.translation - before.translation)
 
-    def _calibration_frame(self, points, reading, fit, stage_ms):
-        """Collects a calibration frame (its points and eye reading); on the last one
-        calibrates. Returns the frame's fit (refitted by the calibration when it ran)."""
+    def _calibration_frame(self, points, reading, fit, stage_ms, gray):
+        """Collects a calibration frame (its points, eye reading and the face in `gray`, if
+        given); on the last one calibrates. Returns the frame's fit (refitted by the calibration
+        when it ran)."""
         self._calibration_points.append(points.copy())
         self._calibration_eyes.append(reading)
+        if gray is not None:
+            self._calibration_faces.append(_face_crop(gray, points))
         if len(self._calibration_points) < self._pending:
             return fit
         start = time.perf_counter()
@@ -510,31 +547,45 @@ class FaceTrackingSession:
                      self._filters["params"](fit.params, timestamp),
                      self._filters["landmarks"](points, timestamp))
 
-    def _weights(self, params, reading, timestamp, stage_ms):
-        """The avatar's shape-key weights for these shape parameters and the eyes' frontal
+    def _posed_neutral(self, rotation, translation):
+        """(468, 2) the actor's calibrated neutral posed so, in pixels."""
+        return self.camera.project(rotation.apply(self.neutral) + translation)
+
+    def _weights(self, params, reading, expression, timestamp, stage_ms):
+        """The avatar's shape-key weights for these shape parameters, the eyes' frontal
         reading (the eyes' rows join the solve when both the reading and the eyes' neutral
-        exist; after the calibration frame itself); the frame is recorded."""
+        exist; after the calibration frame itself) and the appearance's change from the
+        neutral face (None: not read); the frame is recorded."""
         start = time.perf_counter()
         displacement = self._fitter.model.shape(params) - self.neutral
-        values = self._solved(displacement, None if self._pending else reading)
+        if expression is not None and self._appearance_map is not None:
+            # the appearance's reading and the points' as targets of one solve
+            share = self._appearance_map.share
+            expression = (share * self._appearance_map.displacement(expression)
+                          + (1.0 - share) * displacement)
+        else:
+            expression = None
+        values = self._solved(displacement, None if self._pending else reading, expression)
         stage_ms["weights"] = 1000 * (time.perf_counter() - start)
         self.take.timestamps.append(float(timestamp))
-        self.take.displacements.append(displacement)
+        self.take.displacements.append(displacement if expression is None else expression)
         return dict(zip(self.solver.names, values.tolist()))
 
-    def _solved(self, displacement, reading):
-        """(N,) the avatar's weights for a displacement from the neutral (468, 3) and the eyes'
-        frontal reading (None: no eyes' rows)."""
+    def _solved(self, displacement, reading, expression=None):
+        """(N,) the avatar's weights for a displacement from the neutral (468, 3), the eyes'
+        frontal reading (None: no eyes' rows) and the appearance's expression as the points'
+        displacement (None: not read)."""
         if reading is not None and self._eye_targets is not None:
             values = self.solver.solve(displacement, *self._eye_targets.rows(reading))
         else:
             values = self.solver.solve(displacement)
-        if self._other_keys is not None:
-            # the keys the eyes do not read, from the landmarks alone: FaceMesh's points hardly
-            # follow what the eye keys move about the eyes (the rings of points about the
-            # lids), so with the eye keys' motion taken off them the brow keys answer its
-            # negative (docs/method.md §12)
-            values[self._other_keys] = self._other_solver.solve(displacement)
+        if self._other_solver is not None:
+            # the keys the eyes do not read, from the appearance or else the landmarks alone:
+            # FaceMesh's points hardly follow what the eye keys move about the eyes (the rings
+            # of points about the lids), so with the eye keys' motion taken off them the brow
+            # keys answer its negative (docs/method.md §12)
+            values[self._other_keys] = self._other_solver.solve(
+                displacement if expression is None else expression)
         return values
 
     def _finish_calibration(self):
@@ -549,9 +600,11 @@ class FaceTrackingSession:
         self._previous_fit, self._fit_before = fits[-1], None
         self._material = None if self._gray is None else MaterialPoints(self._gray, fits[-1], fitter)
         self._calibrate_eyes(fits)
+        self._calibrate_appearance(fits)
         self._pending = 0
         self._calibration_points = []
         self._calibration_eyes = []
+        self._calibration_faces = []
         self.take = RecordedTake()
         self._reset_filters()
         if self.avatar is not None:
@@ -559,12 +612,29 @@ class FaceTrackingSession:
             self.solver = WeightSolver(mapped, self.avatar.names)
             self._eye_targets = None if self.eye_neutral is None else eyes.EyeTargets(
                 self.avatar.names, self.eye_neutral, self.solver.scale)
+            self._appearance_map = None
+            if self._appearance is not False and self._neutral_reading is not None:
+                self._appearance_map = (load_appearance_map() if self._appearance is True
+                                        else self._appearance)
+            read_by_eyes = (np.zeros(len(mapped), dtype=bool) if self._eye_targets is None
+                            else self._eye_targets.keys)
             self._other_keys = self._other_solver = None
-            if self._eye_targets is not None and 0 < self._eye_targets.keys.sum() < len(mapped):
-                self._other_keys = np.flatnonzero(~self._eye_targets.keys)
+            if read_by_eyes.any() or self._appearance_map is not None:
+                self._other_keys = np.flatnonzero(~read_by_eyes)
+            if self._other_keys is not None and len(self._other_keys):
                 self._other_solver = WeightSolver(mapped[self._other_keys],
                                                   [self.avatar.names[j] for j in self._other_keys],
                                                   scale=self.solver.scale)
+
+    def _calibrate_appearance(self, fits):
+        """The neutral face's reading: the mean of the calibration frames' (none unless every
+        frame was an image), each frontalised by its own fitted pose."""
+        self._neutral_reading = None
+        if self._calibration_faces and len(self._calibration_faces) == len(fits):
+            self._neutral_reading = np.mean([self._frontaliser.reading(
+                crop, self._posed_neutral(self._tracker_model.unbiased_rotation(fit),
+                                          fit.translation) - corner)
+                for (crop, corner), fit in zip(self._calibration_faces, fits)], axis=0)
 
     def _calibrate_eyes(self, fits):
         """The eyes' neutral: the median of the calibration frames' readings, each brought
