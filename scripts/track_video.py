@@ -65,6 +65,9 @@ def parse_args(argv):
                         help="frames with a face that calibrate the actor's neutral (default 30)")
     parser.add_argument("--still-images", action="store_true",
                         help="treat every frame as an unrelated photograph")
+    parser.add_argument("--no-appearance", action="store_true",
+                        help="read expressions from the face's points and eyes alone, not from "
+                             "its image too")
     return parser.parse_args(argv)
 
 
@@ -145,7 +148,8 @@ def _session(args, source, avatar):
         camera = Camera.from_image_size(*source.frame_size, **given)
     return camera, FaceTrackingSession(avatar=avatar, camera=camera,
                                        calibration_frames=args.calibration_frames,
-                                       still_images=args.still_images)
+                                       still_images=args.still_images,
+                                       appearance=not args.no_appearance)
 
 
 def _tracked_frame(args, source, session, camera):

@@ -153,6 +153,23 @@ def test_video_take_keys_every_shape_key_at_the_videos_time(ict, video, capfd):
     assert bpy.data.images[camera_preview.PREVIEW_IMAGE].size[:] == (camera_preview.PREVIEW_WIDTH, 240)
 
 
+def test_reading_the_faces_image_is_the_takes_choice(ict, video):
+    """With Read the Face's Image off the keys follow the points and eyes alone: the same take
+    keys other values, each still in [0, 1]."""
+    values = {}
+    for use_appearance in (True, False):
+        obj = add_avatar(ict, name=f"avatar_{use_appearance}")
+        assert bpy.ops.exclone.drive_from_webcam(source_type='VIDEO', filepath=str(video),
+                                                 record=True, use_appearance=use_appearance,
+                                                 show_overlay=False) == {'FINISHED'}
+        curves = keyframes(obj.data.shape_keys)
+        values[use_appearance] = np.array([[value for _, value in curves[path]]
+                                           for path in sorted(curves)])
+    assert values[True].shape == values[False].shape
+    assert 0.0 <= values[False].min() and values[False].max() <= 1.0
+    assert np.abs(values[True] - values[False]).max() > 0.01
+
+
 def test_a_take_on_the_worker_thread_keys_what_step_keys_and_its_ticks_stay_short(ict, video):
     """What the modal operator does: the worker thread reads and tracks, tick() on the main
     thread only applies; a file's every frame is applied in order, as step() applies them.
@@ -593,6 +610,7 @@ def test_panel_section_offers_the_choices_and_the_status(ict):
                          "exclone.refine_take", "exclone.import_take_csv",
                          "exclone.export_take_csv", "exclone.calibrate_camera"]
     assert ("prop", "camera_index") in log and ("label", "Not running") in log
+    assert ("prop", "use_appearance") in log
     assert ("label", "Preferences' webcam: 0") in log
 
     webcam = bpy.context.scene.exclone.webcam

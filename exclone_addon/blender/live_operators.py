@@ -53,6 +53,10 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
         description="Use the scene's chessboard calibration when there is one")
     show_overlay: BoolProperty(name="Camera Preview", default=True,
                                description="Show the camera image in the viewport while tracking")
+    use_appearance: BoolProperty(
+        name="Read the Face's Image", default=True,
+        description="Read expressions from the face's image as well as from its points (off: "
+                    "the points and the eyes alone)")
 
     @classmethod
     def poll(cls, context):
@@ -68,6 +72,7 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
                 filepath=self.filepath, record=self.record, key_set=self.key_set,
                 head_kind=self.head_target, armature=self.armature, bone=self.bone,
                 max_frames=self.max_frames, use_calibration=self.use_calibration,
+                use_appearance=self.use_appearance,
                 progress=lambda fraction, *_: window_manager.progress_update(fraction))
         except Exception as exc:    # whatever stops the start, the user reads one line
             failed(self, exc)

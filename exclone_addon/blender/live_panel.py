@@ -65,6 +65,7 @@ def _draw_take(layout, webcam, path):
     row = layout.row(align=True)
     row.prop(webcam, "record", icon='REC')
     row.prop(webcam, "show_overlay", icon='IMAGE_DATA')
+    layout.prop(webcam, "use_appearance")
 
     row = layout.row(align=True)
     if webcam_take.running is None:
@@ -78,6 +79,7 @@ def _draw_take(layout, webcam, path):
         start.armature = armature.name if armature is not None else ""
         start.bone = webcam.head_bone
         start.show_overlay = webcam.show_overlay
+        start.use_appearance = webcam.use_appearance
     else:
         row.operator("exclone.stop_webcam", text="Stop", icon='PAUSE')
     row.operator("exclone.calibrate_neutral", text="Calibrate", icon='USER')

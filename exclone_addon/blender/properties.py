@@ -63,6 +63,10 @@ class EXCLONE_PG_webcam(bpy.types.PropertyGroup):
     show_overlay: BoolProperty(
         name="Camera Preview", default=True,
         description="Show the camera image with the tracked landmarks in the viewport")
+    use_appearance: BoolProperty(
+        name="Read the Face's Image", default=True,
+        description="Read expressions from the face's image as well as from its points (off: "
+                    "the points and the eyes alone)")
     chessboard_folder: StringProperty(
         name="Chessboards", subtype='DIR_PATH',
         description="Folder of photographs of a printed chessboard taken with the webcam")

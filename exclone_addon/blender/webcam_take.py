@@ -284,7 +284,7 @@ def shape_key_curves(key):
 
 def start_take(context, *, source_type, camera_index=-1, filepath="", record=False, key_set='ALL',
                head_kind='NONE', armature="", bone="", max_frames=0, use_calibration=True,
-               progress=None):
+               use_appearance=True, progress=None):
     """Checks the avatar and the head target, prepares the avatar (cached), then opens the
     source: a Take ready to step. Raises ExCloneError with nothing changed."""
     avatar = checked_avatar(context.active_object)
@@ -297,7 +297,8 @@ def start_take(context, *, source_type, camera_index=-1, filepath="", record=Fal
         camera = calibrated_camera(webcam, source.frame_size) if use_calibration else None
         # The session calibrates the neutral face over the first second by itself.
         session = FaceTrackingSession(
-            avatar=rig, camera=camera, calibration_frames=max(1, round(source.frame_rate or 30)))
+            avatar=rig, camera=camera, calibration_frames=max(1, round(source.frame_rate or 30)),
+            appearance=use_appearance)
     except BaseException:
         source.close()
         raise
