@@ -12,6 +12,7 @@ into the library's keys the eyes do not read.
 """
 from dataclasses import dataclass
 from functools import lru_cache
+
 import cv2
 import numpy as np
 from scipy.spatial import Delaunay
