@@ -72,9 +72,17 @@ def test_a_map_learnt_from_linear_readings_gives_the_weights_back():
     held_out = rng.uniform(0, 1, (50, keys))
     read = np.array([learned.weights(change) for change in held_out @ effects])
     np.testing.assert_allclose(read, held_out, atol=0.01)
-    np.testing.assert_allclose(learned.displacement(held_out[0] @ effects),
+    np.testing.assert_allclose(learned.motion_of(read[0]),
                                np.tensordot(held_out[0], motion, axes=1), atol=0.05)
     assert learned.weights(-3 * effects.sum(axis=0)).max() == 0.0     # bounded below by 0
+
+
+def test_keys_are_read_by_name_or_by_their_halves():
+    learned = learn_appearance_map(np.eye(4, FEATURES), np.eye(4, 3), ["jawOpen", "cheekPuff_L",
+                                   "cheekPuff_R"], np.zeros((3, 468, 3)), components=2, ridge=1.0)
+    names = ["cheekPuff", "jawOpen", "eyeBlink_L", "mouthSmile_L", "jawOpen"]
+    candidates = np.array([True, True, True, True, False])
+    assert learned.keys_by_name(names, candidates) == [(0, [1, 2]), (1, [0])]
 
 
 def test_the_map_file_round_trips_and_a_missing_or_old_one_says_what_to_run(tmp_path):

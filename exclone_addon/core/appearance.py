@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import Delaunay
 
 from . import data
+from .library import ARKIT_SPLIT
 from .tracking import FRONTAL
 
 FRONTAL_SIZE = (80, 96)       # the frontal grid (width, height), the face's width 76 pixels
@@ -85,9 +86,22 @@ class AppearanceMap:
         """(K,) the keys' weights for a reading's change from the actor's neutral (FEATURES,)."""
         return np.clip(change @ self.coefficients + self.intercept, 0.0, 1.0)
 
-    def displacement(self, change):
-        """(n, 3) the tracker's points' motion from the neutral for a reading's change."""
-        return np.tensordot(self.weights(change), self.motion, axes=1)
+    def motion_of(self, weights):
+        """(n, 3) the tracker's points' motion from the neutral that its keys' weights (K,)
+        make."""
+        return np.tensordot(weights, self.motion, axes=1)
+
+    def keys_by_name(self, names, candidates):
+        """[(j, the map's columns)] for each key j of `names` (among those `candidates` (N,)
+        marks) that the map reads by its name, or by both halves' for an ARKit key the library
+        splits (their mean is its weight)."""
+        columns = {name: c for c, name in enumerate(self.names)}
+        found = []
+        for j, name in enumerate(names):
+            halves = ARKIT_SPLIT.get(name, (name,))
+            if candidates[j] and all(half in columns for half in halves):
+                found.append((j, [columns[half] for half in halves]))
+        return found
 
 
 def learn_appearance_map(changes, weights, names, motion, components, ridge):

@@ -199,6 +199,7 @@ class FaceTrackingSession:
         self._frontaliser = FaceFrontaliser(self.model.mean)
         self._appearance = appearance
         self._appearance_map = None
+        self._read_by_name = []       # (the avatar's key, the map's columns) of keys named alike
         self._neutral_reading = None  # the mean reading of the calibration frames
         self.expression_reading = None   # this frame's reading less it (None: not read)
         self._calibration_faces = []  # the calibration frames' faces: (grey crop, its corner)
@@ -558,35 +559,43 @@ class FaceTrackingSession:
         neutral face (None: not read); the frame is recorded."""
         start = time.perf_counter()
         displacement = self._fitter.model.shape(params) - self.neutral
+        read = None
         if expression is not None and self._appearance_map is not None:
-            # the appearance's reading and the points' as targets of one solve
-            share = self._appearance_map.share
-            expression = (share * self._appearance_map.displacement(expression)
-                          + (1.0 - share) * displacement)
-        else:
-            expression = None
-        values = self._solved(displacement, None if self._pending else reading, expression)
+            read = self._appearance_map.weights(expression)
+        values, recorded = self._solved(displacement, None if self._pending else reading, read)
         stage_ms["weights"] = 1000 * (time.perf_counter() - start)
         self.take.timestamps.append(float(timestamp))
-        self.take.displacements.append(displacement if expression is None else expression)
+        self.take.displacements.append(recorded)
         return dict(zip(self.solver.names, values.tolist()))
 
-    def _solved(self, displacement, reading, expression=None):
-        """(N,) the avatar's weights for a displacement from the neutral (468, 3), the eyes'
-        frontal reading (None: no eyes' rows) and the appearance's expression as the points'
-        displacement (None: not read)."""
+    def _solved(self, displacement, reading, read=None):
+        """((N,) the avatar's weights, the displacement the take records) for a displacement
+        from the neutral (468, 3), the eyes' frontal reading (None: no eyes' rows) and the
+        appearance map's weights of its keys (None: not read)."""
         if reading is not None and self._eye_targets is not None:
             values = self.solver.solve(displacement, *self._eye_targets.rows(reading))
         else:
             values = self.solver.solve(displacement)
-        if self._other_solver is not None:
-            # the keys the eyes do not read, from the appearance or else the landmarks alone:
-            # FaceMesh's points hardly follow what the eye keys move about the eyes (the rings
-            # of points about the lids), so with the eye keys' motion taken off them the brow
-            # keys answer its negative (docs/method.md §12)
-            values[self._other_keys] = self._other_solver.solve(
-                displacement if expression is None else expression)
-        return values
+        if self._other_solver is None:
+            return values, displacement
+        # the keys the eyes do not read, from the landmarks alone: FaceMesh's points hardly
+        # follow what the eye keys move about the eyes (the rings of points about the lids),
+        # so with the eye keys' motion taken off them the brow keys answer its negative
+        # (docs/method.md §12)
+        from_points = self._other_solver.solve(displacement)
+        if read is None:
+            values[self._other_keys] = from_points
+            return values, displacement
+        # with the appearance: a key it reads by name takes its weight and the points' at its
+        # share; the others follow its expression (its keys' motion) and the points' alike
+        share = self._appearance_map.share
+        blended = share * self._appearance_map.motion_of(read) + (1.0 - share) * displacement
+        by_points = values.copy()
+        by_points[self._other_keys] = from_points
+        values[self._other_keys] = self._other_solver.solve(blended)
+        for key, columns in self._read_by_name:
+            values[key] = share * read[columns].mean() + (1.0 - share) * by_points[key]
+        return values, blended
 
     def _finish_calibration(self):
         frames = np.array(self._calibration_points)
@@ -619,6 +628,10 @@ class FaceTrackingSession:
             read_by_eyes = (np.zeros(len(mapped), dtype=bool) if self._eye_targets is None
                             else self._eye_targets.keys)
             self._other_keys = self._other_solver = None
+            self._read_by_name = []
+            if self._appearance_map is not None:
+                self._read_by_name = self._appearance_map.keys_by_name(self.avatar.names,
+                                                                      ~read_by_eyes)
             if read_by_eyes.any() or self._appearance_map is not None:
                 self._other_keys = np.flatnonzero(~read_by_eyes)
             if self._other_keys is not None and len(self._other_keys):
