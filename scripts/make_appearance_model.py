@@ -22,9 +22,7 @@ Run it after make_tracker_model.py (the readings go through the tracker).
 
     .venv/bin/python scripts/make_appearance_model.py [--work DIR] [--jobs N]
 """
-import argparse
 import sys
-import tempfile
 import time
 from dataclasses import replace
 from concurrent.futures import ProcessPoolExecutor
@@ -44,11 +42,11 @@ from exclone_addon.core.session import FaceTrackingSession  # noqa: E402
 from exclone_addon.core.tracker_model import (EYE_KEY_PREFIX, load_tracker_model,  # noqa: E402
                                               read_tracker_locations)
 from exclone_addon.core.tracking import FRONTAL, Camera  # noqa: E402
-from make_tracker_model import identity_vertices  # noqa: E402
+from make_tracker_model import (identity_vertices, render_identity,  # noqa: E402
+                                require_identities, training_parser)
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO / "scripts"))     # render_faces (in each rendering process too)
-IDENTITIES = REPO.parent / "shared" / "data" / "ict-facekit" / "identities.npz"
 # ICT identity seeds: the tests' rendered takes use the bundled face and seed 7, the tracker
 # model seeds 101-108.
 TRAINING_IDENTITIES = tuple(range(301, 397))
@@ -124,41 +122,25 @@ def take_folder(work, identity):
 
 
 def render_take(work, identity, identities_file):
-    """Renders one identity's take into its folder under `work` (frames already there are
-    kept); returns the frames' paths."""
-    import render_faces     # needs bpy
+    """Renders one identity's take into its folder under `work` (skipped when it is there);
+    returns the frames' paths."""
     library = load_library()
-    names = list(library.names)
-    recipe = take_recipe(identity, names)
-    folder = take_folder(work, identity)
-    paths = [folder / f"frame_{k:04d}.png" for k in range(TAKE_FRAMES)]
-    if all(path.is_file() for path in paths):
-        return paths
-    weights, rotations, translations, tint, light = recipe
-    vertices = identity_vertices(library, identity, identities_file)
-    locations = read_tracker_locations()
-    colours = render_faces.vertex_colours(vertices, library.parts, locations.sample(vertices))
-    start, stop = library.parts["face"]
-    colours[start:stop] *= tint
-    renderer = render_faces.FaceRenderer(
-        render_faces.rendered_triangles(library.mesh.triangles(), library.parts), colours,
-        IMAGE_SIZE, studio_light=light)
-    centre = locations.sample(vertices).mean(axis=0)
-    folder.mkdir(parents=True, exist_ok=True)
+    weights, rotations, translations, tint, light = take_recipe(identity, list(library.names))
     begun = time.time()
-    for k, path in enumerate(paths):
-        if not path.is_file():
-            posed = vertices + np.tensordot(weights[k], library.deltas, axes=1)
-            renderer.render(rotations[k].apply(posed - centre) + translations[k], path)
+    paths = render_identity(take_folder(work, identity), library,
+                            identity_vertices(library, identity, identities_file),
+                            (weights, rotations, translations, tint), read_tracker_locations(),
+                            studio_light=light)
     print(f"make_appearance_model: identity {identity}: {len(paths)} frames in "
           f"{time.time() - begun:.0f} s", flush=True)
     return paths
 
 
-def read_take(paths, avatar=None, appearance_map=False):
+def read_take(paths, avatar=None, appearance_map=True):
     """((T, appearance.FEATURES) each frame's reading as a tracking session makes it, (T, E)
-    the library keys' weights onto `avatar` read with `appearance_map`), NaN where the session
-    had no face or was calibrating (and without an avatar)."""
+    the library keys' weights onto `avatar` read with `appearance_map` (the session's
+    `appearance`: without an avatar no map is loaded)), NaN where the session had no face or
+    was calibrating (and without an avatar)."""
     session = FaceTrackingSession(avatar=avatar, camera=Camera.from_image_size(*IMAGE_SIZE),
                                   calibration_frames=CALIBRATION_FRAMES, appearance=appearance_map)
     readings = np.full((len(paths), appearance.FEATURES), np.nan)
@@ -223,17 +205,11 @@ def held_out_share(paths, truths, changes, weights, keys, names, motion, compone
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--work", type=Path,
-                        default=Path(tempfile.gettempdir()) / "exclone_appearance_training",
-                        help="where the training takes' frames are cached")
-    parser.add_argument("--identities", type=Path, default=IDENTITIES,
-                        help="ICT-FaceKit's identity model (identities.npz)")
+    parser = training_parser(__doc__, "exclone_appearance_training",
+                             "where the training takes' frames are cached")
     parser.add_argument("--jobs", type=int, default=2, help="takes rendered at once")
     args = parser.parse_args()
-    if not args.identities.is_file():
-        sys.exit(f"make_appearance_model: {args.identities} is missing "
-                 "(ICT-FaceKit's identity model)")
+    require_identities(args.identities, "make_appearance_model")
     if args.jobs < 1:
         sys.exit(f"make_appearance_model: --jobs must be at least 1, got {args.jobs}")
     # each take in its own process: Blender's scene is one per process

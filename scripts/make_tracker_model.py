@@ -76,8 +76,9 @@ def identity_vertices(library, identity, identities_file):
     return library.mesh.vertices + np.tensordot(coefficients, modes, axes=1)
 
 
-def render_identity(folder, library, vertices, recipe, locations):
-    """Renders one identity's frames into `folder` (skipped when they are there)."""
+def render_identity(folder, library, vertices, recipe, locations, studio_light="Default"):
+    """Renders one identity's frames into `folder` (skipped when they are there) under one of
+    Workbench's studio lights (render_faces.STUDIO_LIGHTS)."""
     paths = [folder / f"frame_{k:04d}.png" for k in range(len(recipe[0]))]
     if all(path.is_file() for path in paths):
         return paths
@@ -87,7 +88,8 @@ def render_identity(folder, library, vertices, recipe, locations):
     start, stop = library.parts["face"]
     colours[start:stop] *= tint
     renderer = render_faces.FaceRenderer(
-        render_faces.rendered_triangles(library.mesh.triangles(), library.parts), colours, IMAGE_SIZE)
+        render_faces.rendered_triangles(library.mesh.triangles(), library.parts), colours,
+        IMAGE_SIZE, studio_light=studio_light)
     centre = locations.sample(vertices).mean(axis=0)
     folder.mkdir(parents=True, exist_ok=True)
     for k, path in enumerate(paths):
@@ -161,16 +163,28 @@ def training_frames(work, identities_file, locations):
     return parts, library
 
 
-def main():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--work", type=Path,
-                        default=Path(tempfile.gettempdir()) / "exclone_tracker_training",
-                        help="where the training renders and FaceMesh's points are cached")
+def training_parser(doc, work_folder, work_help):
+    """A build script's arguments: --work (`work_folder` in the temp directory by default) and
+    --identities; `doc`'s first paragraph describes it."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0])
+    parser.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / work_folder,
+                        help=work_help)
     parser.add_argument("--identities", type=Path, default=IDENTITIES,
                         help="ICT-FaceKit's identity model (identities.npz)")
+    return parser
+
+
+def require_identities(path, script):
+    """Ends `script` in one line when ICT-FaceKit's identity model is not at `path`."""
+    if not path.is_file():
+        sys.exit(f"{script}: {path} is missing (ICT-FaceKit's identity model)")
+
+
+def main():
+    parser = training_parser(__doc__, "exclone_tracker_training",
+                             "where the training renders and FaceMesh's points are cached")
     args = parser.parse_args()
-    if not args.identities.is_file():
-        sys.exit(f"make_tracker_model: {args.identities} is missing (ICT-FaceKit's identity model)")
+    require_identities(args.identities, "make_tracker_model")
     sys.path.insert(0, str(REPO / "scripts"))     # render_faces
     locations = locate_tracker_landmarks()
     frames, library = training_frames(args.work, args.identities, locations)

@@ -36,8 +36,8 @@ class FaceFrontaliser:
         width, height = FRONTAL_SIZE
         seen = FRONTAL.apply(mean_points - mean_points.mean(axis=0))[:, :2]
         low, high = seen.min(axis=0), seen.max(axis=0)
-        on_grid = (seen - low) * ((width - 4) / (high[0] - low[0])) + 2.0
-        triangulation = Delaunay(on_grid)
+        self.grid_points = (seen - low) * ((width - 4) / (high[0] - low[0])) + 2.0   # (n, 2)
+        triangulation = Delaunay(self.grid_points)
         rows, columns = np.mgrid[0:height, 0:width]
         pixels = np.column_stack((columns.ravel(), rows.ravel())).astype(np.float64)
         simplex = triangulation.find_simplex(pixels)
@@ -91,15 +91,14 @@ class AppearanceMap:
         make."""
         return np.tensordot(weights, self.motion, axes=1)
 
-    def keys_by_name(self, names, candidates):
-        """[(j, the map's columns)] for each key j of `names` (among those `candidates` (N,)
-        marks) that the map reads by its name, or by both halves' for an ARKit key the library
-        splits (their mean is its weight)."""
+    def keys_by_name(self, names):
+        """[(j, the map's columns)] for each key j of `names` that the map reads by its name,
+        or by both halves' for an ARKit key the library splits (their mean is its weight)."""
         columns = {name: c for c, name in enumerate(self.names)}
         found = []
         for j, name in enumerate(names):
             halves = ARKIT_SPLIT.get(name, (name,))
-            if candidates[j] and all(half in columns for half in halves):
+            if all(half in columns for half in halves):
                 found.append((j, [columns[half] for half in halves]))
         return found
 

@@ -199,7 +199,7 @@ class FaceTrackingSession:
         self._frontaliser = FaceFrontaliser(self.model.mean)
         self._appearance = appearance
         self._appearance_map = None
-        self._read_by_name = []       # (the avatar's key, the map's columns) of keys named alike
+        self._read_by_name = []       # (a key among the other keys, the map's columns): named alike
         self._neutral_reading = None  # the mean reading of the calibration frames
         self.expression_reading = None   # this frame's reading less it (None: not read)
         self._calibration_faces = []  # the calibration frames' faces: (grey crop, its corner)
@@ -531,7 +531,7 @@ class FaceTrackingSession:
         when it ran)."""
         self._calibration_points.append(points.copy())
         self._calibration_eyes.append(reading)
-        if gray is not None:
+        if gray is not None and self._appearance is not False:
             self._calibration_faces.append(_face_crop(gray, points))
         if len(self._calibration_points) < self._pending:
             return fit
@@ -590,11 +590,10 @@ class FaceTrackingSession:
         # share; the others follow its expression (its keys' motion) and the points' alike
         share = self._appearance_map.share
         blended = share * self._appearance_map.motion_of(read) + (1.0 - share) * displacement
-        by_points = values.copy()
-        by_points[self._other_keys] = from_points
-        values[self._other_keys] = self._other_solver.solve(blended)
+        others = self._other_solver.solve(blended)
         for key, columns in self._read_by_name:
-            values[key] = share * read[columns].mean() + (1.0 - share) * by_points[key]
+            others[key] = share * read[columns].mean() + (1.0 - share) * from_points[key]
+        values[self._other_keys] = others
         return values, blended
 
     def _finish_calibration(self):
@@ -622,22 +621,21 @@ class FaceTrackingSession:
             self._eye_targets = None if self.eye_neutral is None else eyes.EyeTargets(
                 self.avatar.names, self.eye_neutral, self.solver.scale)
             self._appearance_map = None
-            if self._appearance is not False and self._neutral_reading is not None:
+            if self._neutral_reading is not None:     # read (appearance not False)
                 self._appearance_map = (load_appearance_map() if self._appearance is True
                                         else self._appearance)
             read_by_eyes = (np.zeros(len(mapped), dtype=bool) if self._eye_targets is None
                             else self._eye_targets.keys)
             self._other_keys = self._other_solver = None
             self._read_by_name = []
-            if self._appearance_map is not None:
-                self._read_by_name = self._appearance_map.keys_by_name(self.avatar.names,
-                                                                      ~read_by_eyes)
             if read_by_eyes.any() or self._appearance_map is not None:
                 self._other_keys = np.flatnonzero(~read_by_eyes)
             if self._other_keys is not None and len(self._other_keys):
-                self._other_solver = WeightSolver(mapped[self._other_keys],
-                                                  [self.avatar.names[j] for j in self._other_keys],
+                names = [self.avatar.names[j] for j in self._other_keys]
+                self._other_solver = WeightSolver(mapped[self._other_keys], names,
                                                   scale=self.solver.scale)
+                if self._appearance_map is not None:
+                    self._read_by_name = self._appearance_map.keys_by_name(names)
 
     def _calibrate_appearance(self, fits):
         """The neutral face's reading: the mean of the calibration frames' (none unless every
