@@ -16,7 +16,9 @@ besides the points (core.appearance, docs/method.md §12):
    leaving a quarter of the takes out at a time;
 4. the appearance's share beside the points' in what the avatar's keys follow: some of the
    takes left out tracked again onto their own heads with a map learnt without them, at each
-   share.
+   share;
+5. the turn's bias: the tracked head turn's error against the take's true turn, linear in the
+   weights the map reads (maps learnt without the take's fold), its penalty chosen by the folds.
 
 Run it after make_tracker_model.py (the readings go through the tracker).
 
@@ -71,6 +73,8 @@ COMPONENTS = (400, 800, 1500)
 RIDGES = (0.001, 0.01, 0.1)
 FOLDS = 4
 SHARES = (0.25, 0.5, 0.75, 1.0)
+# The turn bias's ridge penalties (per frame) it is chosen from, by the folds' median turn error.
+TURN_RIDGES = (1e-4, 1e-3, 1e-2)
 SHARE_TAKES = 8     # of the first fold's takes, tracked at each share
 MOVES_CM = 0.01     # a key the map reads moves some tracker point this far (the pupils' do not)
 
@@ -139,39 +143,84 @@ def render_take(work, identity, identities_file):
 def read_take(paths, avatar=None, appearance_map=True):
     """((T, appearance.FEATURES) each frame's reading as a tracking session makes it, (T, E)
     the library keys' weights onto `avatar` read with `appearance_map` (the session's
-    `appearance`: without an avatar no map is loaded)), NaN where the session had no face or
-    was calibrating (and without an avatar)."""
+    `appearance`: without an avatar no map is loaded), (T, 4) the tracked turn (model -> camera,
+    quaternions)), NaN where the session had no face or was calibrating (and without an
+    avatar)."""
     session = FaceTrackingSession(avatar=avatar, camera=Camera.from_image_size(*IMAGE_SIZE),
                                   calibration_frames=CALIBRATION_FRAMES, appearance=appearance_map)
     readings = np.full((len(paths), appearance.FEATURES), np.nan)
     weights = np.full((len(paths), len(avatar.names) if avatar else 0), np.nan)
+    turns = np.full((len(paths), 4), np.nan)
     for k, path in enumerate(paths):
         result = session.step(cv2.imread(str(path)), k / FPS)
         if session.expression_reading is not None:
             readings[k] = session.expression_reading
+            turns[k] = result.rotation.as_quat()
         if result.weights is not None:
             weights[k] = [result.weights[name] for name in avatar.names]
-    return readings, weights
+    return readings, weights, turns
 
 
-def held_out_scores(readings, weights, choices):
-    """Per (components, ridge) of `choices`, the mean correlation with the truth over the keys
-    (those that move in the frames left out) of maps learnt with the other folds of the takes
-    (lists of (T, FEATURES), (T, K))."""
-    scores = {choice: [] for choice in choices}
+def _folds(count, fold):
+    """(the takes learnt from, the takes left out) of `count` takes for one fold."""
+    return ([k for k in range(count) if k % FOLDS != fold],
+            [k for k in range(count) if k % FOLDS == fold])
+
+
+def held_out_weights(readings, weights, choices):
+    """Per (components, ridge) of `choices`, each take's weights (T, K) read by the map learnt
+    without its fold (readings, weights: lists by take of (T, FEATURES), (T, K))."""
+    found = {choice: [None] * len(readings) for choice in choices}
     for fold in range(FOLDS):
-        learnt = [k for k in range(len(readings)) if k % FOLDS != fold]
-        left = [k for k in range(len(readings)) if k % FOLDS == fold]
+        learnt, left = _folds(len(readings), fold)
         maps = appearance.learn_appearance_maps(
             np.vstack([readings[k] for k in learnt]), np.vstack([weights[k] for k in learnt]),
             [], np.zeros((weights[0].shape[1], 0, 3)), choices)
-        truth = np.vstack([weights[k] for k in left])
-        changes = np.vstack([readings[k] for k in left])
-        moving = np.flatnonzero(truth.std(axis=0) > 0)
         for choice, learned in zip(choices, maps):
-            read = np.array([learned.weights(change) for change in changes])
-            scores[choice] += [np.corrcoef(read[:, j], truth[:, j])[0, 1] for j in moving]
-    return {choice: float(np.nanmean(values)) for choice, values in scores.items()}
+            for k in left:
+                found[choice][k] = np.array([learned.weights(change) for change in readings[k]])
+    return found
+
+
+def held_out_scores(read, weights):
+    """Per choice, the mean correlation with the truth over the keys (those that move in each
+    fold's takes) of held_out_weights' weights `read` (weights: the truth by take)."""
+    scores = {}
+    for choice, taken in read.items():
+        values = []
+        for fold in range(FOLDS):
+            left = _folds(len(weights), fold)[1]
+            truth = np.vstack([weights[k] for k in left])
+            estimate = np.vstack([taken[k] for k in left])
+            values += [np.corrcoef(estimate[:, j], truth[:, j])[0, 1]
+                       for j in np.flatnonzero(truth.std(axis=0) > 0)]
+        scores[choice] = float(np.nanmean(values))
+    return scores
+
+
+def turn_errors(turns, true_turns):
+    """(T, 3) the tracked turns' errors (quaternions (T, 4), model -> camera) against the true
+    ones (Rotations), as rotation vectors in the head's axes, less their mean (the tracker's
+    model frame differs from the head's by a constant turn)."""
+    error = true_turns.inv() * Rotation.from_quat(turns)
+    return (error * error.mean().inv()).as_rotvec()
+
+
+def held_out_turn_ridge(read, errors):
+    """The ridge (TURN_RIDGES) whose turn bias, learnt without each fold's takes, leaves their
+    turn errors smallest (median angle), and each ridge's median in degrees (read, errors:
+    lists by take of held-out weights (T, K) and turn errors (T, 3))."""
+    scores = {}
+    for ridge in TURN_RIDGES:
+        left_errors = []
+        for fold in range(FOLDS):
+            learnt, left = _folds(len(read), fold)
+            bias = appearance.learn_turn_bias([read[k] for k in learnt],
+                                              [errors[k] for k in learnt], ridge)
+            left_errors += [errors[k] - (read[k] - read[k].mean(axis=0)) @ bias for k in left]
+        remaining = np.vstack([e - e.mean(axis=0) for e in left_errors])
+        scores[ridge] = float(np.degrees(np.median(np.linalg.norm(remaining, axis=1))))
+    return min(scores, key=scores.get), scores
 
 
 def held_out_share(paths, truths, changes, weights, keys, names, motion, components, ridge,
@@ -182,8 +231,8 @@ def held_out_share(paths, truths, changes, weights, keys, names, motion, compone
     calibrated frames' readings and the map's keys' weights; keys: the map's)."""
     library = load_library()
     locations = read_tracker_locations()
-    learnt = [k for k in range(len(paths)) if k % FOLDS]
-    left = [k for k in range(len(paths)) if not k % FOLDS][:SHARE_TAKES]
+    learnt, left = _folds(len(paths), 0)
+    left = left[:SHARE_TAKES]
     learned = appearance.learn_appearance_map(
         np.vstack([changes[k] for k in learnt]), np.vstack([weights[k] for k in learnt]),
         [names[j] for j in keys], motion[keys], components, ridge)
@@ -220,16 +269,23 @@ def main():
     motion = load_tracker_model().expressions
     keys = [j for j, name in enumerate(names)
             if not name.startswith(EYE_KEY_PREFIX) and np.abs(motion[j]).max() >= MOVES_CM]
-    readings = [read_take(paths)[0] for paths in takes]
-    truths = [take_recipe(identity, names)[0] for identity in TRAINING_IDENTITIES]
-    seen = [np.all(np.isfinite(read), axis=1) for read in readings]
-    changes = [read[ok] for read, ok in zip(readings, seen)]
-    weights = [truth[ok][:, keys] for truth, ok in zip(truths, seen)]
-    scores = held_out_scores(changes, weights,
-                             [(components, ridge) for components in COMPONENTS for ridge in RIDGES])
+    tracked = [read_take(paths) for paths in takes]
+    recipes = [take_recipe(identity, names) for identity in TRAINING_IDENTITIES]
+    seen = [np.all(np.isfinite(readings), axis=1) for readings, _, _ in tracked]
+    changes = [readings[ok] for (readings, _, _), ok in zip(tracked, seen)]
+    weights = [recipe[0][ok][:, keys] for recipe, ok in zip(recipes, seen)]
+    errors = [turn_errors(turns[ok], recipe[1][ok])
+              for (_, _, turns), recipe, ok in zip(tracked, recipes, seen)]
+    read = held_out_weights(changes, weights,
+                            [(components, ridge) for components in COMPONENTS for ridge in RIDGES])
+    scores = held_out_scores(read, weights)
     components, ridge = max(scores, key=scores.get)
     print("make_appearance_model: held-out correlation by components and ridge: " +
           ", ".join(f"{c} / {r}: {score:.3f}" for (c, r), score in scores.items()), flush=True)
+    turn_ridge, turn_scores = held_out_turn_ridge(read[components, ridge], errors)
+    print("make_appearance_model: held-out median turn error (deg) by the turn bias's ridge: " +
+          ", ".join(f"{r}: {score:.3f}" for r, score in turn_scores.items()), flush=True)
+    truths = [recipe[0] for recipe in recipes]
     share, share_scores = held_out_share(takes, truths, changes, weights, keys, names, motion,
                                          components, ridge, args.identities)
     print("make_appearance_model: held-out correlation by the appearance's share: " +
@@ -237,10 +293,12 @@ def main():
     learned = appearance.learn_appearance_map(np.vstack(changes), np.vstack(weights),
                                               [names[j] for j in keys], motion[keys], components,
                                               ridge)
-    appearance.write_appearance_map(replace(learned, share=share))
+    # the turn's bias from the weights the map reads of frames it was not learnt from
+    turn_bias = appearance.learn_turn_bias(read[components, ridge], errors, turn_ridge)
+    appearance.write_appearance_map(replace(learned, share=share, turn_bias=turn_bias))
     print(f"make_appearance_model: learnt from {sum(map(len, changes))} frames of "
           f"{len(TRAINING_IDENTITIES)} takes ({components} components, ridge {ridge}, share "
-          f"{share}); wrote {APPEARANCE_MAP_FILE}")
+          f"{share}, turn ridge {turn_ridge}); wrote {APPEARANCE_MAP_FILE}")
 
 
 if __name__ == "__main__":

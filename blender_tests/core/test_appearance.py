@@ -1,15 +1,19 @@
 """The face's appearance read for expressions (core.appearance) on known answers: a face image
 made by a known affine map comes back onto the frontal grid exactly, a brighter light reads the
-same, a map learnt from readings that are linear in known weights gives those weights back, and
-the shipped map's file is checked as the tracker model's is.
+same, a map learnt from readings that are linear in known weights gives those weights back, a
+turn bias learnt from errors linear in known weights takes those errors off, and the shipped
+map's file is checked as the tracker model's is.
 """
+from dataclasses import replace
+
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from exclone_addon.core import data
 from exclone_addon.core.appearance import (FEATURES, FRONTAL_SIZE, FaceFrontaliser,
-                                           learn_appearance_map, read_appearance_map,
-                                           write_appearance_map)
+                                           learn_appearance_map, learn_turn_bias,
+                                           read_appearance_map, write_appearance_map)
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import load_tracker_model
@@ -68,6 +72,32 @@ def test_a_map_learnt_from_linear_readings_gives_the_weights_back():
     assert learned.weights(-3 * effects.sum(axis=0)).max() == 0.0     # bounded below by 0
 
 
+def test_a_turn_bias_learnt_from_errors_linear_in_the_weights_takes_them_off():
+    """Each take's turn error: its own constant (its calibration's) plus a known linear effect
+    of the keys' weights and a little noise; the bias learnt over the takes takes the effect off
+    a turn tracked with the error on the head's side (model axes)."""
+    rng = np.random.default_rng(6)
+    keys = 4
+    effect = np.radians(rng.uniform(-3, 3, (keys, 3)))
+    weights, errors = [], []
+    for _ in range(6):
+        w = rng.uniform(0, 1, (200, keys)) * (rng.uniform(size=(200, keys)) < 0.5)
+        weights.append(w)
+        errors.append(w @ effect + np.radians(rng.uniform(-2, 2, 3))
+                      + np.radians(0.05) * rng.normal(size=(200, 3)))
+    bias = learn_turn_bias(weights, errors, ridge=1e-6)
+    np.testing.assert_allclose(bias, effect, atol=np.radians(0.02))
+    learned = replace(learn_appearance_map(np.eye(keys, FEATURES), np.eye(keys), [
+        f"key{j}" for j in range(keys)], np.zeros((keys, 468, 3)), components=2, ridge=1.0),
+        turn_bias=bias)
+    true = Rotation.from_euler("yxz", [20, -10, 5], degrees=True)
+    read = np.array([0.8, 0.0, 0.5, 1.0])
+    tracked = true * Rotation.from_rotvec(read @ effect)
+    assert np.degrees((learned.unbiased_turn(tracked, read) * true.inv()).magnitude()) < 0.05
+    assert np.degrees((tracked * true.inv()).magnitude()) > 1.0
+    assert replace(learned, turn_bias=None).unbiased_turn(tracked, read) is tracked
+
+
 def test_keys_are_read_by_name_or_by_their_halves():
     learned = learn_appearance_map(np.eye(4, FEATURES), np.eye(4, 3), ["jawOpen", "cheekPuff_L",
                                    "cheekPuff_R"], np.zeros((3, 468, 3)), components=2, ridge=1.0)
@@ -78,13 +108,15 @@ def test_keys_are_read_by_name_or_by_their_halves():
 def test_the_map_file_round_trips_and_a_missing_or_old_one_says_what_to_run(tmp_path):
     rng = np.random.default_rng(1)
     changes, weights = rng.normal(size=(60, FEATURES)), rng.uniform(size=(60, 2))
-    learned = learn_appearance_map(changes, weights, ["jawOpen", "mouthPucker"],
-                                   np.zeros((2, 468, 3)), components=10, ridge=0.1)
+    learned = replace(learn_appearance_map(changes, weights, ["jawOpen", "mouthPucker"],
+                                           np.zeros((2, 468, 3)), components=10, ridge=0.1),
+                      turn_bias=rng.normal(size=(2, 3)))
     path = tmp_path / "map.npz"
     write_appearance_map(learned, path)
     read = read_appearance_map(path)
     assert read.names == ("jawOpen", "mouthPucker")
     np.testing.assert_allclose(read.coefficients, learned.coefficients, rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(read.turn_bias, learned.turn_bias, rtol=1e-6)
     with pytest.raises(ExCloneError, match="make_appearance_model"):
         read_appearance_map(tmp_path / "missing.npz")
     with np.load(path) as stored:
@@ -105,3 +137,4 @@ def test_the_shipped_map_reads_the_library_keys_the_eyes_do_not_as_the_tracker_m
     tracked = load_tracker_model().expressions[[names.index(n) for n in shipped.names]]
     np.testing.assert_allclose(shipped.motion, tracked, atol=1e-5)
     assert 0.0 <= shipped.share <= 1.0
+    assert shipped.turn_bias.shape == (len(shipped.names), 3)

@@ -9,6 +9,11 @@ that grid; the head's turn does not move it. Less the mean over the calibration 
 actor's own neutral face) and divided by the face's median brightness, it is read by a linear
 map learnt at build time from rendered takes of ICT identities (scripts/make_appearance_model.py)
 into the library's keys the eyes do not read.
+
+The same keys' weights say how the fit misreads the head's turn: FaceMesh's points move with a
+sneer or a pucker in ways the shape model partly explains as a pitch or a yaw. What remains of
+that after the tracker model's own learnt bias is learnt as linear in the map's weights
+(learn_turn_bias) and taken off the tracked turn.
 """
 from dataclasses import dataclass
 from functools import lru_cache
@@ -16,6 +21,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 from scipy.spatial import Delaunay
+from scipy.spatial.transform import Rotation
 
 from . import data
 from .library import ARKIT_SPLIT
@@ -24,7 +30,7 @@ from .tracking import FRONTAL
 FRONTAL_SIZE = (80, 96)       # the frontal grid (width, height), the face's width 76 pixels
 READING_SIZE = (40, 48)       # what the map reads: the grid averaged over 2x2 pixels
 FEATURES = READING_SIZE[0] * READING_SIZE[1]
-MAP_VERSION = 1
+MAP_VERSION = 2      # 2: the turn's bias (turn_bias)
 REMEDY = "run scripts/make_appearance_model.py"
 
 
@@ -81,10 +87,20 @@ class AppearanceMap:
     motion: np.ndarray        # (K, n, 3) each key's motion at the tracker's points (model axes)
     # the appearance's share in the expression the avatar's keys follow, the points' the rest
     share: float = 0.5
+    # (K, 3) the tracked turn's error (a rotation vector in the head's axes) per unit of each
+    # key's weight (learn_turn_bias; None: none taken off)
+    turn_bias: np.ndarray = None
 
     def weights(self, change):
         """(K,) the keys' weights for a reading's change from the actor's neutral (FEATURES,)."""
         return np.clip(change @ self.coefficients + self.intercept, 0.0, 1.0)
+
+    def unbiased_turn(self, rotation, weights):
+        """The head's turn (model -> camera) tracked as `rotation` while the keys' weights (K,)
+        are read, less the error they make in it."""
+        if self.turn_bias is None:
+            return rotation
+        return rotation * Rotation.from_rotvec(weights @ self.turn_bias).inv()
 
     def motion_of(self, weights):
         """(n, 3) the tracker's points' motion from the neutral that its keys' weights (K,)
@@ -129,12 +145,26 @@ def learn_appearance_maps(changes, weights, names, motion, choices):
     return maps
 
 
+def learn_turn_bias(weights, errors, ridge):
+    """(K, 3) the turn's error linear in the keys' weights, by ridge regression (penalty
+    `ridge` times the frames' count) over takes: per take, the keys' weights read (F, K) and
+    the turn's errors in the same frames (rotation vectors in the head's axes (F, 3)). Each
+    take's are taken as they vary about its means: a take's constant error is its
+    calibration's, not an expression's."""
+    weights = np.vstack([w - w.mean(axis=0) for w in weights])
+    errors = np.vstack([e - e.mean(axis=0) for e in errors])
+    penalty = ridge * len(weights) * np.eye(weights.shape[1])
+    return np.linalg.solve(weights.T @ weights + penalty, weights.T @ errors)
+
+
 def write_appearance_map(learned, path=data.APPEARANCE_MAP_FILE):
     np.savez_compressed(path, format_version=np.int64(MAP_VERSION),
                         names=np.array(learned.names),
                         coefficients=learned.coefficients.astype(np.float32),
                         intercept=learned.intercept.astype(np.float32),
-                        motion=learned.motion.astype(np.float32), share=np.float64(learned.share))
+                        motion=learned.motion.astype(np.float32), share=np.float64(learned.share),
+                        turn_bias=(np.zeros((len(learned.names), 3)) if learned.turn_bias is None
+                                   else learned.turn_bias).astype(np.float32))
 
 
 def read_appearance_map(path=data.APPEARANCE_MAP_FILE):
@@ -142,7 +172,8 @@ def read_appearance_map(path=data.APPEARANCE_MAP_FILE):
     return AppearanceMap(tuple(str(name) for name in stored["names"]),
                          stored["coefficients"].astype(np.float64),
                          stored["intercept"].astype(np.float64),
-                         stored["motion"].astype(np.float64), float(stored["share"]))
+                         stored["motion"].astype(np.float64), float(stored["share"]),
+                         stored["turn_bias"].astype(np.float64))
 
 
 @lru_cache(maxsize=1)

@@ -488,19 +488,23 @@ class FaceTrackingSession:
             reading = None       # not brought frontal: the eyes' rows join from the next frame
             pose = self._shown_pose(replace(fit, rotation=self._tracker_model.unbiased_rotation(fit)),
                                     points, timestamp)
-        self.expression_reading = None
+        self.expression_reading = read = None
         if gray is not None and self._neutral_reading is not None:
             start = time.perf_counter()
             self.expression_reading = self._frontaliser.reading(
                 gray, self._posed_neutral(pose.rotation, pose.translation)) - self._neutral_reading
+            if self._appearance_map is not None:
+                read = self._appearance_map.weights(self.expression_reading)
+                # the turn less what the expression made the fit read into it
+                pose = replace(pose, rotation=self._appearance_map.unbiased_turn(pose.rotation,
+                                                                                 read))
             stage_ms["appearance"] = 1000 * (time.perf_counter() - start)
         head_rotation = weights = None
         if self.calibrated:
             relative = self.neutral_rotation.inv() * pose.rotation     # in the face's own axes
             head_rotation = MODEL_TO_BLENDER * relative * MODEL_TO_BLENDER.inv()
             if self.solver is not None:
-                weights = self._weights(pose.params, reading, self.expression_reading, timestamp,
-                                        stage_ms)
+                weights = self._weights(pose.params, reading, read, timestamp, stage_ms)
         if self._pending:
             status = f"calibrating {len(self._calibration_points)}/{self._pending}: hold a neutral face"
         else:
@@ -552,16 +556,13 @@ class FaceTrackingSession:
         """(468, 2) the actor's calibrated neutral posed so, in pixels."""
         return self.camera.project(rotation.apply(self.neutral) + translation)
 
-    def _weights(self, params, reading, expression, timestamp, stage_ms):
+    def _weights(self, params, reading, read, timestamp, stage_ms):
         """The avatar's shape-key weights for these shape parameters, the eyes' frontal
         reading (the eyes' rows join the solve when both the reading and the eyes' neutral
-        exist; after the calibration frame itself) and the appearance's change from the
-        neutral face (None: not read); the frame is recorded."""
+        exist; after the calibration frame itself) and the appearance map's weights of its keys
+        (None: not read); the frame is recorded."""
         start = time.perf_counter()
         displacement = self._fitter.model.shape(params) - self.neutral
-        read = None
-        if expression is not None and self._appearance_map is not None:
-            read = self._appearance_map.weights(expression)
         values, recorded = self._solved(displacement, None if self._pending else reading, read)
         stage_ms["weights"] = 1000 * (time.perf_counter() - start)
         self.take.timestamps.append(float(timestamp))
