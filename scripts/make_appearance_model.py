@@ -9,14 +9,14 @@ besides the points (core.appearance, docs/method.md §12):
    0.35 CPU s a frame, cached in --work);
 2. each take tracked by core.session.FaceTrackingSession as a camera's frames are, and each
    frame's face read as the session reads it (core.appearance: the face frontalised by the
-   tracked pose, less the take's calibrated neutral face);
-3. a ridge map from those readings to the library's keys the eyes do not read (and that move
-   the face)
+   tracked pose, less the take's calibrated neutral face), beside the keys' weights its points'
+   expression gives;
+3. a ridge map from those readings and points' weights to the library's keys the eyes do not
+   read (and that move the face)
    (core.appearance.learn_appearance_map), its principal components and penalty chosen by
    leaving a quarter of the takes out at a time;
-4. the appearance's share beside the points' in what the avatar's keys follow: some of the
-   takes left out tracked again onto their own heads with a map learnt without them, at each
-   share;
+4. the appearance's share beside the points' in what the avatar's keys follow: a quarter of
+   the takes tracked again onto their own heads with a map learnt without them, at each share;
 5. the turn's bias: the tracked head turn's error against the take's true turn, linear in the
    weights the map reads (maps learnt without the take's fold), its penalty chosen by the folds.
 
@@ -72,10 +72,9 @@ RECIPE_VERSION = 1
 COMPONENTS = (400, 800, 1500)
 RIDGES = (0.001, 0.01, 0.1)
 FOLDS = 4
-SHARES = (0.25, 0.5, 0.75, 1.0)
+SHARES = (0.5, 0.625, 0.75, 0.875, 1.0)
 # The turn bias's ridge penalties (per frame) it is chosen from, by the folds' median turn error.
 TURN_RIDGES = (1e-4, 1e-3, 1e-2)
-SHARE_TAKES = 8     # of the first fold's takes, tracked at each share
 MOVES_CM = 0.01     # a key the map reads moves some tracker point this far (the pupils' do not)
 
 
@@ -140,15 +139,17 @@ def render_take(work, identity, identities_file):
     return paths
 
 
-def read_take(paths, avatar=None, appearance_map=True):
-    """((T, appearance.FEATURES) each frame's reading as a tracking session makes it, (T, E)
-    the library keys' weights onto `avatar` read with `appearance_map` (the session's
-    `appearance`: without an avatar no map is loaded), (T, 4) the tracked turn (model -> camera,
-    quaternions)), NaN where the session had no face or was calibrating (and without an
-    avatar)."""
+def read_take(paths, points_solver=None, avatar=None, appearance_map=True):
+    """((T, appearance.FEATURES) each frame's reading as a tracking session makes it, (T, K)
+    the points' expression's weights by `points_solver` (appearance.points_solver; K = 0
+    without it), (T, E) the library keys' weights onto `avatar` read with `appearance_map` (the
+    session's `appearance`: without an avatar no map is loaded), (T, 4) the tracked turn (model
+    -> camera, quaternions)), NaN where the session had no face or was calibrating (and
+    without an avatar)."""
     session = FaceTrackingSession(avatar=avatar, camera=Camera.from_image_size(*IMAGE_SIZE),
                                   calibration_frames=CALIBRATION_FRAMES, appearance=appearance_map)
     readings = np.full((len(paths), appearance.FEATURES), np.nan)
+    points = np.full((len(paths), len(points_solver.names) if points_solver else 0), np.nan)
     weights = np.full((len(paths), len(avatar.names) if avatar else 0), np.nan)
     turns = np.full((len(paths), 4), np.nan)
     for k, path in enumerate(paths):
@@ -156,9 +157,11 @@ def read_take(paths, avatar=None, appearance_map=True):
         if session.expression_reading is not None:
             readings[k] = session.expression_reading
             turns[k] = result.rotation.as_quat()
+            if points_solver is not None:
+                points[k] = points_solver.solve(session.expression_displacement)
         if result.weights is not None:
             weights[k] = [result.weights[name] for name in avatar.names]
-    return readings, weights, turns
+    return readings, points, weights, turns
 
 
 def _folds(count, fold):
@@ -167,18 +170,21 @@ def _folds(count, fold):
             [k for k in range(count) if k % FOLDS == fold])
 
 
-def held_out_weights(readings, weights, choices):
+def held_out_weights(readings, points, weights, choices):
     """Per (components, ridge) of `choices`, each take's weights (T, K) read by the map learnt
-    without its fold (readings, weights: lists by take of (T, FEATURES), (T, K))."""
+    without its fold (readings, points, weights: lists by take of (T, FEATURES), the points'
+    weights (T, K), the true weights (T, K))."""
     found = {choice: [None] * len(readings) for choice in choices}
     for fold in range(FOLDS):
         learnt, left = _folds(len(readings), fold)
         maps = appearance.learn_appearance_maps(
-            np.vstack([readings[k] for k in learnt]), np.vstack([weights[k] for k in learnt]),
-            [], np.zeros((weights[0].shape[1], 0, 3)), choices)
+            np.vstack([readings[k] for k in learnt]), np.vstack([points[k] for k in learnt]),
+            np.vstack([weights[k] for k in learnt]), [], np.zeros((weights[0].shape[1], 0, 3)),
+            choices)
         for choice, learned in zip(choices, maps):
             for k in left:
-                found[choice][k] = np.array([learned.weights(change) for change in readings[k]])
+                found[choice][k] = np.array([learned.weights_read(change, read) for change, read
+                                             in zip(readings[k], points[k])])
     return found
 
 
@@ -223,25 +229,27 @@ def held_out_turn_ridge(read, errors):
     return min(scores, key=scores.get), scores
 
 
-def held_out_share(paths, truths, changes, weights, keys, names, motion, components, ridge,
-                   identities_file):
+def held_out_share(paths, truths, changes, points, weights, keys, names, motion, components,
+                   ridge, identities_file):
     """The share (SHARES) whose weights correlate best with the truth, averaged over the keys
-    the map reads that move, on SHARE_TAKES takes of the first fold tracked onto their own
+    the map reads that move, on the first fold's takes tracked onto their own
     heads, and each share's score (lists by take: frame paths, true weights (T, E), and the
-    calibrated frames' readings and the map's keys' weights; keys: the map's)."""
+    calibrated frames' readings, points' weights and the map's keys' weights; keys: the
+    map's)."""
     library = load_library()
     locations = read_tracker_locations()
     learnt, left = _folds(len(paths), 0)
-    left = left[:SHARE_TAKES]
     learned = appearance.learn_appearance_map(
-        np.vstack([changes[k] for k in learnt]), np.vstack([weights[k] for k in learnt]),
-        [names[j] for j in keys], motion[keys], components, ridge)
+        np.vstack([changes[k] for k in learnt]), np.vstack([points[k] for k in learnt]),
+        np.vstack([weights[k] for k in learnt]), [names[j] for j in keys], motion[keys],
+        components, ridge)
     read = {share: [] for share in SHARES}
     for k in left:
         head = identity_vertices(library, TRAINING_IDENTITIES[k], identities_file)
         avatar = AvatarRig.from_locations(head, library.deltas, names, locations)
         for share in SHARES:
-            read[share].append(read_take(paths[k], avatar, replace(learned, share=share))[1])
+            read[share].append(read_take(paths[k], avatar=avatar,
+                                         appearance_map=replace(learned, share=share))[2])
     truth = np.vstack([truths[k] for k in left])[:, keys]
     moving = np.flatnonzero(truth.std(axis=0) > 0)
     scores = {}
@@ -269,14 +277,16 @@ def main():
     motion = load_tracker_model().expressions
     keys = [j for j, name in enumerate(names)
             if not name.startswith(EYE_KEY_PREFIX) and np.abs(motion[j]).max() >= MOVES_CM]
-    tracked = [read_take(paths) for paths in takes]
+    solver = appearance.points_solver([names[j] for j in keys], motion[keys])
+    tracked = [read_take(paths, solver) for paths in takes]
     recipes = [take_recipe(identity, names) for identity in TRAINING_IDENTITIES]
-    seen = [np.all(np.isfinite(readings), axis=1) for readings, _, _ in tracked]
-    changes = [readings[ok] for (readings, _, _), ok in zip(tracked, seen)]
+    seen = [np.all(np.isfinite(readings), axis=1) for readings, _, _, _ in tracked]
+    changes = [readings[ok] for (readings, _, _, _), ok in zip(tracked, seen)]
+    points = [read[ok] for (_, read, _, _), ok in zip(tracked, seen)]
     weights = [recipe[0][ok][:, keys] for recipe, ok in zip(recipes, seen)]
     errors = [turn_errors(turns[ok], recipe[1][ok])
-              for (_, _, turns), recipe, ok in zip(tracked, recipes, seen)]
-    read = held_out_weights(changes, weights,
+              for (_, _, _, turns), recipe, ok in zip(tracked, recipes, seen)]
+    read = held_out_weights(changes, points, weights,
                             [(components, ridge) for components in COMPONENTS for ridge in RIDGES])
     scores = held_out_scores(read, weights)
     components, ridge = max(scores, key=scores.get)
@@ -286,13 +296,13 @@ def main():
     print("make_appearance_model: held-out median turn error (deg) by the turn bias's ridge: " +
           ", ".join(f"{r}: {score:.3f}" for r, score in turn_scores.items()), flush=True)
     truths = [recipe[0] for recipe in recipes]
-    share, share_scores = held_out_share(takes, truths, changes, weights, keys, names, motion,
-                                         components, ridge, args.identities)
+    share, share_scores = held_out_share(takes, truths, changes, points, weights, keys, names,
+                                         motion, components, ridge, args.identities)
     print("make_appearance_model: held-out correlation by the appearance's share: " +
           ", ".join(f"{s}: {score:.3f}" for s, score in share_scores.items()), flush=True)
-    learned = appearance.learn_appearance_map(np.vstack(changes), np.vstack(weights),
-                                              [names[j] for j in keys], motion[keys], components,
-                                              ridge)
+    learned = appearance.learn_appearance_map(np.vstack(changes), np.vstack(points),
+                                              np.vstack(weights), [names[j] for j in keys],
+                                              motion[keys], components, ridge)
     # the turn's bias from the weights the map reads of frames it was not learnt from
     turn_bias = appearance.learn_turn_bias(read[components, ridge], errors, turn_ridge)
     appearance.write_appearance_map(replace(learned, share=share, turn_bias=turn_bias))

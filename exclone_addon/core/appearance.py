@@ -8,7 +8,10 @@ piecewise-affine warp over the points' Delaunay triangles). The expression moves
 that grid; the head's turn does not move it. Less the mean over the calibration frames (the
 actor's own neutral face) and divided by the face's median brightness, it is read by a linear
 map learnt at build time from rendered takes of ICT identities (scripts/make_appearance_model.py)
-into the library's keys the eyes do not read.
+into the library's keys the eyes do not read. Beside the image the map reads the same keys'
+weights as the points' expression gives them (solved against the keys' motion at the tracker's
+points): what the points do see well (an open jaw, a smile) tells the map what the image's
+change is not (a jaw's opening pulls the mouth's corners down as a frown does).
 
 The same keys' weights say how the fit misreads the head's turn: FaceMesh's points move with a
 sneer or a pucker in ways the shape model partly explains as a pitch or a yaw. What remains of
@@ -16,7 +19,7 @@ that after the tracker model's own learnt bias is learnt as linear in the map's 
 (learn_turn_bias) and taken off the tracked turn.
 """
 from dataclasses import dataclass
-from functools import lru_cache
+from functools import cached_property, lru_cache
 
 import cv2
 import numpy as np
@@ -25,12 +28,13 @@ from scipy.spatial.transform import Rotation
 
 from . import data
 from .library import ARKIT_SPLIT
+from .retarget import WeightSolver
 from .tracking import FRONTAL
 
 FRONTAL_SIZE = (80, 96)       # the frontal grid (width, height), the face's width 76 pixels
 READING_SIZE = (40, 48)       # what the map reads: the grid averaged over 2x2 pixels
 FEATURES = READING_SIZE[0] * READING_SIZE[1]
-MAP_VERSION = 2      # 2: the turn's bias (turn_bias)
+MAP_VERSION = 3      # 2: the turn's bias (turn_bias); 3: the points' weights read too
 REMEDY = "run scripts/make_appearance_model.py"
 
 
@@ -77,12 +81,20 @@ class FaceFrontaliser:
         return reading
 
 
+def points_solver(names, motion):
+    """What the map reads beside the face's image: its keys' weights (K,) from the points'
+    displacement from the neutral (n, 3), the bounded solve (WeightSolver.solve) against the
+    keys' motion at the tracker's points (K, n, 3)."""
+    return WeightSolver(motion, names)
+
+
 @dataclass(frozen=True)
 class AppearanceMap:
-    """keys' weights = clip((reading - neutral reading) @ coefficients + intercept, 0, 1); the
-    expression they make is their located motion at the tracker's points."""
+    """keys' weights = clip([reading - neutral reading, the points' weights] @ coefficients +
+    intercept, 0, 1), the points' weights by points_solver from the same keys' motion; the
+    expression the keys make is that located motion at the tracker's points."""
     names: tuple              # the library keys it reads
-    coefficients: np.ndarray  # (FEATURES, K)
+    coefficients: np.ndarray  # (FEATURES + K, K): the reading's rows, then the points weights'
     intercept: np.ndarray     # (K,)
     motion: np.ndarray        # (K, n, 3) each key's motion at the tracker's points (model axes)
     # the appearance's share in the expression the avatar's keys follow, the points' the rest
@@ -91,9 +103,19 @@ class AppearanceMap:
     # key's weight (learn_turn_bias; None: none taken off)
     turn_bias: np.ndarray = None
 
-    def weights(self, change):
-        """(K,) the keys' weights for a reading's change from the actor's neutral (FEATURES,)."""
-        return np.clip(change @ self.coefficients + self.intercept, 0.0, 1.0)
+    @cached_property
+    def _points_solver(self):
+        return points_solver(self.names, self.motion)
+
+    def weights(self, change, displacement):
+        """(K,) the keys' weights for a reading's change from the actor's neutral (FEATURES,)
+        and the points' displacement from it (n, 3) in the same frame."""
+        return self.weights_read(change, self._points_solver.solve(displacement))
+
+    def weights_read(self, change, points_weights):
+        """weights() from the points' weights (K,) as points_solver gives them."""
+        features = np.concatenate((change, points_weights))
+        return np.clip(features @ self.coefficients + self.intercept, 0.0, 1.0)
 
     def unbiased_turn(self, rotation, weights):
         """The head's turn (model -> camera) tracked as `rotation` while the keys' weights (K,)
@@ -119,29 +141,35 @@ class AppearanceMap:
         return found
 
 
-def learn_appearance_map(changes, weights, names, motion, components, ridge):
-    """The map from readings' changes (F, FEATURES) to known weights (F, K) of keys `names`
-    moving the tracker's points by `motion` (K, n, 3): a ridge regression on the changes'
-    leading principal `components`, the penalty `ridge` times their mean variance."""
-    return learn_appearance_maps(changes, weights, names, motion, [(components, ridge)])[0]
+def learn_appearance_map(changes, points_weights, weights, names, motion, components, ridge):
+    """The map from readings' changes (F, FEATURES) and the points' weights in the same frames
+    (F, K; points_solver's) to known weights (F, K) of keys `names` moving the tracker's points
+    by `motion` (K, n, 3): a ridge regression on both's leading principal `components`, the
+    penalty `ridge` times their mean variance."""
+    return learn_appearance_maps(changes, points_weights, weights, names, motion,
+                                 [(components, ridge)])[0]
 
 
-def learn_appearance_maps(changes, weights, names, motion, choices):
+def learn_appearance_maps(changes, points_weights, weights, names, motion, choices):
     """learn_appearance_map for each (components, ridge) of `choices`, the principal axes
-    found once."""
-    centre = changes.mean(axis=0)
-    _, singular, axes = np.linalg.svd(changes - centre, full_matrices=False)
+    found once. The points' weights are scaled to the readings' spread first, so that the
+    principal axes weigh both alike."""
+    scale = changes.std() / max(float(points_weights.std()), 1e-12)
+    features = np.hstack((changes, scale * points_weights))
+    centre = features.mean(axis=0)
+    _, singular, axes = np.linalg.svd(features - centre, full_matrices=False)
     targets = weights - weights.mean(axis=0)
     maps = []
     for components, ridge in choices:
         projection = axes[:components].T
-        scores = (changes - centre) @ projection
+        scores = (features - centre) @ projection
         penalty = ridge * np.mean(singular[:components] ** 2)
         solved = np.linalg.solve(scores.T @ scores + penalty * np.eye(components),
                                  scores.T @ targets)
         coefficients = projection @ solved
-        maps.append(AppearanceMap(tuple(names), coefficients,
-                                  weights.mean(axis=0) - centre @ coefficients, np.asarray(motion)))
+        intercept = weights.mean(axis=0) - centre @ coefficients
+        coefficients[changes.shape[1]:] *= scale      # read from the points' weights unscaled
+        maps.append(AppearanceMap(tuple(names), coefficients, intercept, np.asarray(motion)))
     return maps
 
 

@@ -202,6 +202,9 @@ class FaceTrackingSession:
         self._read_by_name = []       # (a key among the other keys, the map's columns): named alike
         self._neutral_reading = None  # the mean reading of the calibration frames
         self.expression_reading = None   # this frame's reading less it (None: not read)
+        # this frame's points' expression: the fit's shape less the actor's neutral (468, 3;
+        # None before calibration)
+        self.expression_displacement = None
         self._calibration_faces = []  # the calibration frames' faces: (grey crop, its corner)
         self._material = None         # the take's material points (after calibration, not stills)
         self._gray = None             # the frame being tracked, grey (None: landmarks given)
@@ -426,7 +429,7 @@ class FaceTrackingSession:
     def _lost(self, stage_ms):
         self._roi = None
         self._previous_fit = self._fit_before = None
-        self.expression_reading = None
+        self.expression_reading = self.expression_displacement = None
         last = self._last
         status = "no face in view: holding the last pose" if last else "no face in view"
         if last is None:
@@ -488,13 +491,18 @@ class FaceTrackingSession:
             reading = None       # not brought frontal: the eyes' rows join from the next frame
             pose = self._shown_pose(replace(fit, rotation=self._tracker_model.unbiased_rotation(fit)),
                                     points, timestamp)
-        self.expression_reading = read = None
+        self.expression_reading = self.expression_displacement = read = None
+        if self.calibrated:
+            start = time.perf_counter()
+            self.expression_displacement = self._fitter.model.shape(pose.params) - self.neutral
+            stage_ms["weights"] = 1000 * (time.perf_counter() - start)
         if gray is not None and self._neutral_reading is not None:
             start = time.perf_counter()
             self.expression_reading = self._frontaliser.reading(
                 gray, self._posed_neutral(pose.rotation, pose.translation)) - self._neutral_reading
             if self._appearance_map is not None:
-                read = self._appearance_map.weights(self.expression_reading)
+                read = self._appearance_map.weights(self.expression_reading,
+                                                    self.expression_displacement)
                 # the turn less what the expression made the fit read into it
                 pose = replace(pose, rotation=self._appearance_map.unbiased_turn(pose.rotation,
                                                                                  read))
@@ -504,7 +512,8 @@ class FaceTrackingSession:
             relative = self.neutral_rotation.inv() * pose.rotation     # in the face's own axes
             head_rotation = MODEL_TO_BLENDER * relative * MODEL_TO_BLENDER.inv()
             if self.solver is not None:
-                weights = self._weights(pose.params, reading, read, timestamp, stage_ms)
+                weights = self._weights(self.expression_displacement, reading, read, timestamp,
+                                        stage_ms)
         if self._pending:
             status = f"calibrating {len(self._calibration_points)}/{self._pending}: hold a neutral face"
         else:
@@ -556,15 +565,14 @@ class FaceTrackingSession:
         """(468, 2) the actor's calibrated neutral posed so, in pixels."""
         return self.camera.project(rotation.apply(self.neutral) + translation)
 
-    def _weights(self, params, reading, read, timestamp, stage_ms):
-        """The avatar's shape-key weights for these shape parameters, the eyes' frontal
-        reading (the eyes' rows join the solve when both the reading and the eyes' neutral
-        exist; after the calibration frame itself) and the appearance map's weights of its keys
-        (None: not read); the frame is recorded."""
+    def _weights(self, displacement, reading, read, timestamp, stage_ms):
+        """The avatar's shape-key weights for the points' displacement from the neutral, the
+        eyes' frontal reading (the eyes' rows join the solve when both the reading and the
+        eyes' neutral exist; after the calibration frame itself) and the appearance map's
+        weights of its keys (None: not read); the frame is recorded."""
         start = time.perf_counter()
-        displacement = self._fitter.model.shape(params) - self.neutral
         values, recorded = self._solved(displacement, None if self._pending else reading, read)
-        stage_ms["weights"] = 1000 * (time.perf_counter() - start)
+        stage_ms["weights"] += 1000 * (time.perf_counter() - start)
         self.take.timestamps.append(float(timestamp))
         self.take.displacements.append(recorded)
         return dict(zip(self.solver.names, values.tolist()))
