@@ -12,8 +12,9 @@ optical flow (core.material_points, §11); One Euro filters on pose, shape and l
 with an avatar, its shape-key weights (core.retarget, §12): the eye keys with the eyes' lids and
 gaze (core.eyes) as further targets of the same bounded solve, the other keys from the face's
 appearance (core.appearance: the face frontalised by the tracked pose, less the actor's
-calibrated neutral face, read by a map learnt from rendered faces), or without it from the
-landmarks alone.
+calibrated neutral face, read with the points' own weights by a map learnt from rendered faces;
+its weights also take what the fit read of the expression as a turn off the head's pose), or
+without it from the landmarks alone.
 """
 import time
 from concurrent.futures import ThreadPoolExecutor, wait
