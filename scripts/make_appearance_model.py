@@ -188,6 +188,13 @@ def held_out_weights(readings, points, weights, choices):
     return found
 
 
+def _moving_correlations(estimate, truth):
+    """Each key's correlation of its estimate with the truth (frames, keys), over the keys that
+    move in the truth."""
+    return [np.corrcoef(estimate[:, j], truth[:, j])[0, 1]
+            for j in np.flatnonzero(truth.std(axis=0) > 0)]
+
+
 def held_out_scores(read, weights):
     """Per choice, the mean correlation with the truth over the keys (those that move in each
     fold's takes) of held_out_weights' weights `read` (weights: the truth by take)."""
@@ -196,10 +203,8 @@ def held_out_scores(read, weights):
         values = []
         for fold in range(FOLDS):
             left = _folds(len(weights), fold)[1]
-            truth = np.vstack([weights[k] for k in left])
-            estimate = np.vstack([taken[k] for k in left])
-            values += [np.corrcoef(estimate[:, j], truth[:, j])[0, 1]
-                       for j in np.flatnonzero(truth.std(axis=0) > 0)]
+            values += _moving_correlations(np.vstack([taken[k] for k in left]),
+                                           np.vstack([weights[k] for k in left]))
         scores[choice] = float(np.nanmean(values))
     return scores
 
@@ -251,13 +256,11 @@ def held_out_share(paths, truths, changes, points, weights, keys, names, motion,
             read[share].append(read_take(paths[k], avatar=avatar,
                                          appearance_map=replace(learned, share=share))[2])
     truth = np.vstack([truths[k] for k in left])[:, keys]
-    moving = np.flatnonzero(truth.std(axis=0) > 0)
     scores = {}
     for share, taken in read.items():
         estimate = np.vstack(taken)[:, keys]
         seen = np.all(np.isfinite(estimate), axis=1)
-        scores[share] = float(np.nanmean([np.corrcoef(estimate[seen, j], truth[seen, j])[0, 1]
-                                          for j in moving]))
+        scores[share] = float(np.nanmean(_moving_correlations(estimate[seen], truth[seen])))
     return max(scores, key=scores.get), scores
 
 

@@ -12,7 +12,8 @@ from ..core import capture
 from ..core.camera_calibration import calibrate_camera
 from . import camera_preview, webcam_take
 from .avatar_rig import checked_avatar
-from .properties import HEAD_TARGET_ITEMS, KEY_SET_ITEMS, WEBCAM_SOURCE_ITEMS
+from .properties import (APPEARANCE_OPTION, HEAD_TARGET_ITEMS, KEY_SET_ITEMS,
+                         WEBCAM_SOURCE_ITEMS)
 from .reporting import failed, in_object_mode, passes, reporting
 
 
@@ -53,10 +54,7 @@ class EXCLONE_OT_drive_from_webcam(bpy.types.Operator):
         description="Use the scene's chessboard calibration when there is one")
     show_overlay: BoolProperty(name="Camera Preview", default=True,
                                description="Show the camera image in the viewport while tracking")
-    use_appearance: BoolProperty(
-        name="Read the Face's Image", default=True,
-        description="Read expressions from the face's image as well as from its points (off: "
-                    "the points and the eyes alone)")
+    use_appearance: BoolProperty(**APPEARANCE_OPTION)
 
     @classmethod
     def poll(cls, context):

@@ -41,6 +41,13 @@ class EXCLONE_PG_expression(bpy.types.PropertyGroup):
     selected: BoolProperty(name="Clone", description="Clone this expression", default=True)
 
 
+# Drive from Webcam's "Read the Face's Image", on the panel's settings and on the operator.
+APPEARANCE_OPTION = dict(
+    name="Read the Face's Image", default=True,
+    description="Read expressions from the face's image as well as from its points (off: the "
+                "points and the eyes alone)")
+
+
 class EXCLONE_PG_webcam(bpy.types.PropertyGroup):
     """Drive from Webcam: the panel's choices and the scene's chessboard camera calibration."""
     source_type: EnumProperty(name="Source", items=WEBCAM_SOURCE_ITEMS, default="CAMERA")
@@ -63,10 +70,7 @@ class EXCLONE_PG_webcam(bpy.types.PropertyGroup):
     show_overlay: BoolProperty(
         name="Camera Preview", default=True,
         description="Show the camera image with the tracked landmarks in the viewport")
-    use_appearance: BoolProperty(
-        name="Read the Face's Image", default=True,
-        description="Read expressions from the face's image as well as from its points (off: "
-                    "the points and the eyes alone)")
+    use_appearance: BoolProperty(**APPEARANCE_OPTION)
     chessboard_folder: StringProperty(
         name="Chessboards", subtype='DIR_PATH',
         description="Folder of photographs of a printed chessboard taken with the webcam")
