@@ -16,9 +16,13 @@ besides the points (core.appearance, docs/method.md §12):
    (core.appearance.learn_appearance_map), its principal components and penalty chosen by
    leaving a quarter of the takes out at a time;
 4. the appearance's share beside the points' in what the avatar's keys follow: a quarter of
-   the takes tracked again onto their own heads with a map learnt without them, at each share;
-5. the turn's bias: the tracked head turn's error against the take's true turn, linear in the
-   weights the map reads (maps learnt without the take's fold), its penalty chosen by the folds.
+   the takes tracked again onto their own heads with a map (and its response, step 5) learnt
+   without them, at each share;
+5. the map's response: what it reads per unit of each key's weight, on frames of takes it was
+   not learnt from (the folds' maps), by which its reading is un-mixed, the un-mixing's penalty
+   chosen by the folds (responses learnt without the fold's takes);
+6. the turn's bias: the tracked head turn's error against the take's true turn, linear in the
+   weights the map gives (maps learnt without the take's fold), its penalty chosen by the folds.
 
 Run it after make_tracker_model.py (the readings go through the tracker).
 
@@ -73,6 +77,8 @@ COMPONENTS = (400, 800, 1500)
 RIDGES = (0.001, 0.01, 0.1)
 FOLDS = 4
 SHARES = (0.5, 0.625, 0.75, 0.875, 1.0)
+# The un-mixing's penalties (AppearanceMap.unmixing_ridge) it is chosen from, by the folds.
+UNMIXING_RIDGES = (0.01, 0.03, 0.1)
 # The turn bias's ridge penalties (per frame) it is chosen from, by the folds' median turn error.
 TURN_RIDGES = (1e-4, 1e-3, 1e-2)
 MOVES_CM = 0.01     # a key the map reads moves some tracker point this far (the pupils' do not)
@@ -183,7 +189,7 @@ def held_out_weights(readings, points, weights, choices):
             choices)
         for choice, learned in zip(choices, maps):
             for k in left:
-                found[choice][k] = np.array([learned.weights_read(change, read) for change, read
+                found[choice][k] = np.array([learned.reading(change, read) for change, read
                                              in zip(readings[k], points[k])])
     return found
 
@@ -207,6 +213,21 @@ def held_out_scores(read, weights):
                                            np.vstack([weights[k] for k in left]))
         scores[choice] = float(np.nanmean(values))
     return scores
+
+
+def held_out_unmixing(read, weights):
+    """Per penalty of UNMIXING_RIDGES, each take's held-out reads `read` (held_out_weights') un-
+    mixed by the response learnt from the other folds' takes (weights: the truth by take)."""
+    unmixed = {ridge: [None] * len(read) for ridge in UNMIXING_RIDGES}
+    for fold in range(FOLDS):
+        learnt, left = _folds(len(read), fold)
+        response = appearance.learn_response([read[k] for k in learnt],
+                                             [weights[k] for k in learnt])
+        for ridge in UNMIXING_RIDGES:
+            for k in left:
+                unmixed[ridge][k] = np.array([appearance.unmixed_weights(frame, response, ridge)
+                                              for frame in read[k]])
+    return unmixed
 
 
 def turn_errors(turns, true_turns):
@@ -234,13 +255,15 @@ def held_out_turn_ridge(read, errors):
     return min(scores, key=scores.get), scores
 
 
-def held_out_share(paths, truths, changes, points, weights, keys, names, motion, components,
-                   ridge, identities_file):
+def held_out_share(paths, truths, changes, points, weights, keys, names, motion, choice, read,
+                   identities_file):
     """The share (SHARES) whose weights correlate best with the truth, averaged over the keys
     the map reads that move, on the first fold's takes tracked onto their own
     heads, and each share's score (lists by take: frame paths, true weights (T, E), and the
-    calibrated frames' readings, points' weights and the map's keys' weights; keys: the
-    map's)."""
+    calibrated frames' readings, points' weights, the map's keys' weights and their held-out
+    reads (held_out_weights'); keys: the map's; choice: the map's components, ridge and
+    un-mixing ridge)."""
+    components, ridge, unmixing_ridge = choice
     library = load_library()
     locations = read_tracker_locations()
     learnt, left = _folds(len(paths), 0)
@@ -248,16 +271,18 @@ def held_out_share(paths, truths, changes, points, weights, keys, names, motion,
         np.vstack([changes[k] for k in learnt]), np.vstack([points[k] for k in learnt]),
         np.vstack([weights[k] for k in learnt]), [names[j] for j in keys], motion[keys],
         components, ridge)
-    read = {share: [] for share in SHARES}
+    learned = replace(learned, unmixing_ridge=unmixing_ridge, response=appearance.learn_response(
+        [read[k] for k in learnt], [weights[k] for k in learnt]))
+    tracked = {share: [] for share in SHARES}
     for k in left:
         head = identity_vertices(library, TRAINING_IDENTITIES[k], identities_file)
         avatar = AvatarRig.from_locations(head, library.deltas, names, locations)
         for share in SHARES:
-            read[share].append(read_take(paths[k], avatar=avatar,
-                                         appearance_map=replace(learned, share=share))[2])
+            tracked[share].append(read_take(paths[k], avatar=avatar,
+                                            appearance_map=replace(learned, share=share))[2])
     truth = np.vstack([truths[k] for k in left])[:, keys]
     scores = {}
-    for share, taken in read.items():
+    for share, taken in tracked.items():
         estimate = np.vstack(taken)[:, keys]
         seen = np.all(np.isfinite(estimate), axis=1)
         scores[share] = float(np.nanmean(_moving_correlations(estimate[seen], truth[seen])))
@@ -295,23 +320,33 @@ def main():
     components, ridge = max(scores, key=scores.get)
     print("make_appearance_model: held-out correlation by components and ridge: " +
           ", ".join(f"{c} / {r}: {score:.3f}" for (c, r), score in scores.items()), flush=True)
-    turn_ridge, turn_scores = held_out_turn_ridge(read[components, ridge], errors)
+    raw = read[components, ridge]
+    unmixed = held_out_unmixing(raw, weights)
+    unmixing_scores = held_out_scores(unmixed, weights)
+    unmixing_ridge = max(unmixing_scores, key=unmixing_scores.get)
+    print("make_appearance_model: held-out correlation un-mixed by the penalty: " +
+          ", ".join(f"{r}: {score:.3f}" for r, score in unmixing_scores.items()), flush=True)
+    turn_ridge, turn_scores = held_out_turn_ridge(unmixed[unmixing_ridge], errors)
     print("make_appearance_model: held-out median turn error (deg) by the turn bias's ridge: " +
           ", ".join(f"{r}: {score:.3f}" for r, score in turn_scores.items()), flush=True)
     truths = [recipe[0] for recipe in recipes]
     share, share_scores = held_out_share(takes, truths, changes, points, weights, keys, names,
-                                         motion, components, ridge, args.identities)
+                                         motion, (components, ridge, unmixing_ridge), raw,
+                                         args.identities)
     print("make_appearance_model: held-out correlation by the appearance's share: " +
           ", ".join(f"{s}: {score:.3f}" for s, score in share_scores.items()), flush=True)
     learned = appearance.learn_appearance_map(np.vstack(changes), np.vstack(points),
                                               np.vstack(weights), [names[j] for j in keys],
                                               motion[keys], components, ridge)
-    # the turn's bias from the weights the map reads of frames it was not learnt from
-    turn_bias = appearance.learn_turn_bias(read[components, ridge], errors, turn_ridge)
-    appearance.write_appearance_map(replace(learned, share=share, turn_bias=turn_bias))
+    # the response and the turn's bias from what maps read of frames they were not learnt from
+    turn_bias = appearance.learn_turn_bias(unmixed[unmixing_ridge], errors, turn_ridge)
+    appearance.write_appearance_map(replace(
+        learned, share=share, turn_bias=turn_bias, response=appearance.learn_response(raw, weights),
+        unmixing_ridge=unmixing_ridge))
     print(f"make_appearance_model: learnt from {sum(map(len, changes))} frames of "
-          f"{len(TRAINING_IDENTITIES)} takes ({components} components, ridge {ridge}, share "
-          f"{share}, turn ridge {turn_ridge}); wrote {APPEARANCE_MAP_FILE}")
+          f"{len(TRAINING_IDENTITIES)} takes ({components} components, ridge {ridge}, un-mixing "
+          f"ridge {unmixing_ridge}, share {share}, turn ridge {turn_ridge}); wrote "
+          f"{APPEARANCE_MAP_FILE}")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,9 @@
 """The face's appearance read for expressions (core.appearance) on known answers: a face image
 made by a known affine map comes back onto the frontal grid exactly, a brighter light reads the
 same, a map learnt from readings that are linear in known weights gives those weights back, a
-turn bias learnt from errors linear in known weights takes those errors off, and the shipped
-map's file is checked as the tracker model's is.
+turn bias learnt from errors linear in known weights takes those errors off, a map's response
+learnt from reads that mix known weights un-mixes them, and the shipped map's file is checked
+as the tracker model's is.
 """
 from dataclasses import replace
 
@@ -12,8 +13,9 @@ from scipy.spatial.transform import Rotation
 
 from exclone_addon.core import data
 from exclone_addon.core.appearance import (FEATURES, FRONTAL_SIZE, FaceFrontaliser,
-                                           learn_appearance_map, learn_turn_bias,
-                                           read_appearance_map, write_appearance_map)
+                                           learn_appearance_map, learn_response,
+                                           learn_turn_bias, read_appearance_map,
+                                           unmixed_weights, write_appearance_map)
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import load_tracker_model
@@ -103,6 +105,30 @@ def test_a_turn_bias_learnt_from_errors_linear_in_the_weights_takes_them_off():
     assert replace(learned, turn_bias=None).unbiased_turn(tracked, read) is tracked
 
 
+def test_a_response_learnt_from_mixed_reads_unmixes_them():
+    """A map's reads: each key at a fraction of its weight, some of the others' leaking in, an
+    offset and a little noise (as a ridge map reads on frames it was not learnt from). The
+    response is learnt back, and un-mixing a read of sparse weights gives them back (the bounds
+    keep the keys that are not there at nought); a small penalty shrinks them a little."""
+    rng = np.random.default_rng(8)
+    keys = 6
+    mixing = np.diag(rng.uniform(0.15, 0.6, keys)) + 0.1 * rng.uniform(-1, 1, (keys, keys))
+    offset = rng.uniform(0.0, 0.05, keys)
+    truths = [rng.uniform(0, 1, (300, keys)) * (rng.uniform(size=(300, keys)) < 0.3)
+              for _ in range(4)]
+    reads = [t @ mixing + offset + 0.002 * rng.normal(size=t.shape) for t in truths]
+    response = learn_response(reads, truths)
+    np.testing.assert_allclose(response, np.vstack((mixing, offset)), atol=0.003)
+    true = np.array([0.0, 0.9, 0.0, 0.0, 0.4, 0.0])
+    read = true @ mixing + offset
+    np.testing.assert_allclose(unmixed_weights(read, response, 0.0), true, atol=0.02)
+    assert np.abs(read - true).max() > 0.2         # un-mixing is not nothing
+    shrunk = unmixed_weights(read, response, 0.01)
+    assert np.abs(shrunk - true).max() < 0.1 and shrunk.sum() < true.sum()
+    # weights are kept within [0, 1]
+    assert unmixed_weights(3 * read, response, 0.0).max() <= 1.0
+
+
 def test_keys_are_read_by_name_or_by_their_halves():
     learned = learn_appearance_map(np.eye(4, FEATURES), np.eye(4, 3), np.eye(4, 3), [
         "jawOpen", "cheekPuff_L", "cheekPuff_R"], np.zeros((3, 468, 3)), components=2, ridge=1.0)
@@ -118,11 +144,19 @@ def test_the_map_file_round_trips_and_a_missing_or_old_one_says_what_to_run(tmp_
                                            components=10, ridge=0.1),
                       turn_bias=rng.normal(size=(2, 3)))
     path = tmp_path / "map.npz"
+    # a map without a response writes one that changes nothing
+    write_appearance_map(learned, path)
+    change, points = rng.normal(size=FEATURES), rng.uniform(size=2)
+    np.testing.assert_allclose(read_appearance_map(path).weights_read(change, points),
+                               learned.weights_read(change, points), atol=1e-5)
+    learned = replace(learned, response=rng.uniform(size=(3, 2)), unmixing_ridge=0.03)
     write_appearance_map(learned, path)
     read = read_appearance_map(path)
     assert read.names == ("jawOpen", "mouthPucker")
     np.testing.assert_allclose(read.coefficients, learned.coefficients, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(read.turn_bias, learned.turn_bias, rtol=1e-6)
+    np.testing.assert_allclose(read.response, learned.response, rtol=1e-6)
+    assert read.unmixing_ridge == 0.03
     with pytest.raises(ExCloneError, match="make_appearance_model"):
         read_appearance_map(tmp_path / "missing.npz")
     with np.load(path) as stored:
@@ -144,3 +178,7 @@ def test_the_shipped_map_reads_the_library_keys_the_eyes_do_not_as_the_tracker_m
     np.testing.assert_allclose(shipped.motion, tracked, atol=1e-5)
     assert 0.0 <= shipped.share <= 1.0
     assert shipped.turn_bias.shape == (len(shipped.names), 3)
+    assert shipped.response.shape == (len(shipped.names) + 1, len(shipped.names))
+    # each key reads itself more than any other key leaks into it
+    assert np.all(np.diag(shipped.response) > 0)
+    assert shipped.unmixing_ridge > 0.0

@@ -13,6 +13,13 @@ weights as the points' expression gives them (solved against the keys' motion at
 points): what the points do see well (an open jaw, a smile) tells the map what the image's
 change is not (a jaw's opening pulls the mouth's corners down as a frown does).
 
+A linear map learnt by ridge regression reads each key at a fraction of its weight and leaks
+some of the others' into it (on frames it was not learnt from, a frown at 0.15-0.16 of its
+weight, the mouth's stretch and an open jaw at about a third of that). That response is learnt
+too (learn_response: what the map reads per unit of each key, on frames of takes it was not
+learnt from), and the weights shown are the ones in [0, 1] whose response best explains what
+the map read: a bounded least squares, with a small penalty on the weights (unmixed_weights).
+
 The same keys' weights say how the fit misreads the head's turn: FaceMesh's points move with a
 sneer or a pucker in ways the shape model partly explains as a pitch or a yaw. What remains of
 that after the tracker model's own learnt bias is learnt as linear in the map's weights
@@ -28,14 +35,17 @@ from scipy.spatial.transform import Rotation
 
 from . import data
 from .library import ARKIT_SPLIT
-from .retarget import WeightSolver
+from .retarget import WeightSolver, bounded_weights
 from .tracking import FRONTAL
 
 FRONTAL_SIZE = (80, 96)       # the frontal grid (width, height), the face's width 76 pixels
 READING_SIZE = (40, 48)       # what the map reads: the grid averaged over 2x2 pixels
 FEATURES = READING_SIZE[0] * READING_SIZE[1]
-MAP_VERSION = 3      # 2: the turn's bias (turn_bias); 3: the points' weights read too
+# 2: the turn's bias (turn_bias); 3: the points' weights read too; 4: the map's response
+MAP_VERSION = 4
 REMEDY = "run scripts/make_appearance_model.py"
+# learn_response's penalty per frame: only keeps a key the frames never move determined
+RESPONSE_RIDGE = 1e-4
 
 
 class FaceFrontaliser:
@@ -90,9 +100,10 @@ def points_solver(names, motion):
 
 @dataclass(frozen=True)
 class AppearanceMap:
-    """keys' weights = clip([reading - neutral reading, the points' weights] @ coefficients +
-    intercept, 0, 1), the points' weights by points_solver from the same keys' motion; the
-    expression the keys make is that located motion at the tracker's points."""
+    """What the map reads = clip([reading - neutral reading, the points' weights] @
+    coefficients + intercept, 0, 1), the points' weights by points_solver from the same keys'
+    motion; the keys' weights are that reading un-mixed by the map's response (unmixed); the
+    expression the keys make is their located motion at the tracker's points."""
     names: tuple              # the library keys it reads
     coefficients: np.ndarray  # (FEATURES + K, K): the reading's rows, then the points weights'
     intercept: np.ndarray     # (K,)
@@ -102,6 +113,11 @@ class AppearanceMap:
     # (K, 3) the tracked turn's error (a rotation vector in the head's axes) per unit of each
     # key's weight (learn_turn_bias; None: none taken off)
     turn_bias: np.ndarray = None
+    # (K + 1, K) what the map reads per unit of each key's weight, then with no key (the last
+    # row; learn_response); None: the map's reading is the weights
+    response: np.ndarray = None
+    # the penalty on the weights' squares in unmixed, per unit of the response's scale
+    unmixing_ridge: float = 0.0
 
     @cached_property
     def _points_solver(self):
@@ -114,8 +130,20 @@ class AppearanceMap:
 
     def weights_read(self, change, points_weights):
         """weights() from the points' weights (K,) as points_solver gives them."""
+        return self.unmixed(self.reading(change, points_weights))
+
+    def reading(self, change, points_weights):
+        """(K,) what the map reads (before un-mixing) of a reading's change and the points'
+        weights."""
         features = np.concatenate((change, points_weights))
         return np.clip(features @ self.coefficients + self.intercept, 0.0, 1.0)
+
+    def unmixed(self, read):
+        """(K,) the weights in [0, 1] whose response best explains what the map read (K,),
+        less unmixing_ridge times their squares; `read` itself without a response."""
+        if self.response is None:
+            return read
+        return unmixed_weights(read, self.response, self.unmixing_ridge)
 
     def unbiased_turn(self, rotation, weights):
         """The head's turn (model -> camera) tracked as `rotation` while the keys' weights (K,)
@@ -185,6 +213,26 @@ def learn_turn_bias(weights, errors, ridge):
     return np.linalg.solve(weights.T @ weights + penalty, weights.T @ errors)
 
 
+def unmixed_weights(read, response, ridge):
+    """(K,) the weights w in [0, 1] minimising ||w @ response[:K] + response[K] - read||^2 +
+    ridge ||w||^2: what a map read (K,) un-mixed by its response (K + 1, K; learn_response)."""
+    keys = response.shape[1]
+    return bounded_weights(np.vstack((response[:keys].T, np.sqrt(ridge) * np.eye(keys))),
+                           np.concatenate((read - response[keys], np.zeros(keys))))
+
+
+def learn_response(reads, weights, ridge=RESPONSE_RIDGE):
+    """(K + 1, K) what a map reads (AppearanceMap.reading) per unit of each key's true weight,
+    then with no key (the last row): least squares over frames of takes the map was not learnt
+    from (reads, weights: lists by take of (T, K)), with a penalty `ridge` times the frames'
+    count on the keys' rows."""
+    truth = np.vstack(weights)
+    design = np.column_stack((truth, np.ones(len(truth))))
+    penalty = ridge * len(truth) * np.eye(design.shape[1])
+    penalty[-1, -1] = 0.0
+    return np.linalg.solve(design.T @ design + penalty, design.T @ np.vstack(reads))
+
+
 def write_appearance_map(learned, path=data.APPEARANCE_MAP_FILE):
     np.savez_compressed(path, format_version=np.int64(MAP_VERSION),
                         names=np.array(learned.names),
@@ -192,7 +240,15 @@ def write_appearance_map(learned, path=data.APPEARANCE_MAP_FILE):
                         intercept=learned.intercept.astype(np.float32),
                         motion=learned.motion.astype(np.float32), share=np.float64(learned.share),
                         turn_bias=(np.zeros((len(learned.names), 3)) if learned.turn_bias is None
-                                   else learned.turn_bias).astype(np.float32))
+                                   else learned.turn_bias).astype(np.float32),
+                        response=(_no_response(len(learned.names)) if learned.response is None
+                                  else learned.response).astype(np.float32),
+                        unmixing_ridge=np.float64(learned.unmixing_ridge))
+
+
+def _no_response(keys):
+    """The response of a map that reads each key's weight as it is: un-mixing changes nothing."""
+    return np.vstack((np.eye(keys), np.zeros((1, keys))))
 
 
 def read_appearance_map(path=data.APPEARANCE_MAP_FILE):
@@ -201,7 +257,8 @@ def read_appearance_map(path=data.APPEARANCE_MAP_FILE):
                          stored["coefficients"].astype(np.float64),
                          stored["intercept"].astype(np.float64),
                          stored["motion"].astype(np.float64), float(stored["share"]),
-                         stored["turn_bias"].astype(np.float64))
+                         stored["turn_bias"].astype(np.float64),
+                         stored["response"].astype(np.float64), float(stored["unmixing_ridge"]))
 
 
 @lru_cache(maxsize=1)

@@ -198,19 +198,7 @@ class WeightSolver:
         matrix, c = self._r, self._q.T @ d
         if rows is not None:
             matrix, c = np.vstack((matrix, rows)), np.concatenate((c, targets))
-        # The weights with only w >= 0 (scipy's nnls, about 0.15 ms) are the bounded ones too
-        # when none exceeds 1 (the unique optimum over the larger set lies in the box) and they
-        # are optimal to BVLS's tolerance: nnls can stop short along a key the landmarks hardly
-        # see (0.04 off BVLS's weight on one frame of the rendered turning take). Otherwise
-        # lsq_linear's BVLS (about 2.5 ms for the ICT head's 57 keys).
-        try:
-            weights, _ = nnls(matrix, c)
-        except RuntimeError:        # out of iterations
-            weights = None
-        if (weights is not None and weights.max() <= 1.0
-                and _nonnegative_optimality(matrix, c, weights) < BVLS_TOLERANCE):
-            return weights
-        return lsq_linear(matrix, c, bounds=(0.0, 1.0), method="bvls", tol=BVLS_TOLERANCE).x
+        return bounded_weights(matrix, c)
 
     def solve_take(self, displacements):
         """(T, m, 3) -> (T, N)."""
@@ -231,6 +219,24 @@ class WeightSolver:
         recon = np.tensordot(weights, self.blendshapes, axes=1)
         return (self._weighted_sq(np.asarray(displacements) - recon)
                 + self.scale * self.ridge * float((weights ** 2).sum()))
+
+
+def bounded_weights(matrix, c):
+    """The weights 0 <= w <= 1 minimising ||matrix w - c||.
+
+    The weights with only w >= 0 (scipy's nnls, about 0.15 ms for the ICT head's 57 keys) are
+    the bounded ones too when none exceeds 1 (the unique optimum over the larger set lies in the
+    box) and they are optimal to BVLS's tolerance: nnls can stop short along a key the landmarks
+    hardly see (0.04 off BVLS's weight on one frame of the rendered turning take). Otherwise
+    lsq_linear's BVLS (about 2.5 ms for the 57 keys)."""
+    try:
+        weights, _ = nnls(matrix, c)
+    except RuntimeError:        # out of iterations
+        weights = None
+    if (weights is not None and weights.max() <= 1.0
+            and _nonnegative_optimality(matrix, c, weights) < BVLS_TOLERANCE):
+        return weights
+    return lsq_linear(matrix, c, bounds=(0.0, 1.0), method="bvls", tol=BVLS_TOLERANCE).x
 
 
 def _nonnegative_optimality(matrix, c, weights):
