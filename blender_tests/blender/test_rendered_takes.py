@@ -30,10 +30,10 @@ OTHER_IDENTITY = 7
 # (the lowest shapes mouthFrown_R 0.47; mouthFrown_R 0.75; mouthFrown_L 0.70: every shape of
 # identity 7 at least 0.75). Before the un-mixing: 0.898, 0.038; 0.900, 0.038; 0.930, 0.032 (the
 # frowns 0.69 / 0.51, 0.65 / 0.73, 0.62 / 0.62; every other shape at least 0.73). With every key
-# following the map's weights as their motion at the tracker's points (before the un-mixing):
-# 0.853, 0.033; 0.867, 0.034; 0.899,
-# 0.030. Before the map read the points' weights (share 0.75): 0.886, 0.040; 0.893, 0.042; 0.913,
-# 0.034 (the frowns 0.54 / 0.63, 0.56 / 0.77, 0.55 / 0.49); every key following the motion
+# following the map's weights as their motion at the tracker's points: 0.901, 0.025; 0.916,
+# 0.026; 0.932, 0.020 (before the un-mixing 0.853, 0.033; 0.867, 0.034; 0.899, 0.030). Before
+# the map read the points' weights (share 0.75): 0.886, 0.040; 0.893, 0.042; 0.913, 0.034 (the
+# frowns 0.54 / 0.63, 0.56 / 0.77, 0.55 / 0.49); every key following the motion
 # 0.845, 0.035; 0.863, 0.035; 0.879, 0.032 (the frowns -0.06 / 0.51, 0.00 / 0.69, 0.33 / 0.21).
 # Without the appearance, with the tracker model learnt from
 # FaceMesh's points on other ICT identities (scripts/make_tracker_model.py) and the material
