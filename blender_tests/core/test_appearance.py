@@ -179,6 +179,6 @@ def test_the_shipped_map_reads_the_library_keys_the_eyes_do_not_as_the_tracker_m
     assert 0.0 <= shipped.share <= 1.0
     assert shipped.turn_bias.shape == (len(shipped.names), 3)
     assert shipped.response.shape == (len(shipped.names) + 1, len(shipped.names))
-    # each key reads itself more than any other key leaks into it
+    # every key raises its own reading
     assert np.all(np.diag(shipped.response) > 0)
     assert shipped.unmixing_ridge > 0.0

@@ -116,7 +116,7 @@ class AppearanceMap:
     # (K + 1, K) what the map reads per unit of each key's weight, then with no key (the last
     # row; learn_response); None: the map's reading is the weights
     response: np.ndarray = None
-    # the penalty on the weights' squares in unmixed, per unit of the response's scale
+    # the penalty on the weights' squares when the reading is un-mixed (unmixed_weights)
     unmixing_ridge: float = 0.0
 
     @cached_property
