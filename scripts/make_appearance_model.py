@@ -20,7 +20,7 @@ besides the points (core.appearance, docs/method.md §12):
    without them, at each share;
 5. the map's response: what it reads per unit of each key's weight, on frames of takes it was
    not learnt from (the folds' maps), by which its reading is un-mixed, the un-mixing's penalty
-   chosen by the folds (responses learnt without the fold's takes);
+   chosen by the folds' squared error (responses learnt without the fold's takes);
 6. the turn's bias: the tracked head turn's error against the take's true turn, linear in the
    weights the map gives (maps learnt without the take's fold), its penalty chosen by the folds.
 
@@ -77,8 +77,9 @@ COMPONENTS = (400, 800, 1500)
 RIDGES = (0.001, 0.01, 0.1)
 FOLDS = 4
 SHARES = (0.5, 0.625, 0.75, 0.875, 1.0)
-# The un-mixing's penalties (AppearanceMap.unmixing_ridge) it is chosen from, by the folds.
-UNMIXING_RIDGES = (0.01, 0.03, 0.1)
+# The un-mixing's penalties (AppearanceMap.unmixing_ridge) it is chosen from, by the folds'
+# squared error: the correlation cannot see the un-mixing scale a misread up with an expression.
+UNMIXING_RIDGES = (0.03, 0.1, 0.2, 0.3, 0.5)
 # The turn bias's ridge penalties (per frame) it is chosen from, by the folds' median turn error.
 TURN_RIDGES = (1e-4, 1e-3, 1e-2)
 MOVES_CM = 0.01     # a key the map reads moves some tracker point this far (the pupils' do not)
@@ -230,6 +231,14 @@ def held_out_unmixing(read, weights):
     return unmixed
 
 
+def held_out_squared_errors(read, weights):
+    """Per choice, the mean squared error against the truth (weights, by take) of held-out
+    weights `read` (by choice, lists by take)."""
+    truth = np.vstack(weights)
+    return {choice: float(np.mean((np.vstack(taken) - truth) ** 2))
+            for choice, taken in read.items()}
+
+
 def turn_errors(turns, true_turns):
     """(T, 3) the tracked turns' errors (quaternions (T, 4), model -> camera) against the true
     ones (Rotations), as rotation vectors in the head's axes, less their mean (the tracker's
@@ -322,10 +331,13 @@ def main():
           ", ".join(f"{c} / {r}: {score:.3f}" for (c, r), score in scores.items()), flush=True)
     raw = read[components, ridge]
     unmixed = held_out_unmixing(raw, weights)
+    unmixing_errors = held_out_squared_errors(unmixed, weights)
+    unmixing_ridge = min(unmixing_errors, key=unmixing_errors.get)
     unmixing_scores = held_out_scores(unmixed, weights)
-    unmixing_ridge = max(unmixing_scores, key=unmixing_scores.get)
-    print("make_appearance_model: held-out correlation un-mixed by the penalty: " +
-          ", ".join(f"{r}: {score:.3f}" for r, score in unmixing_scores.items()), flush=True)
+    print("make_appearance_model: held-out squared error (correlation) un-mixed by the penalty: "
+          f"read {held_out_squared_errors({0: raw}, weights)[0]:.5f}, " +
+          ", ".join(f"{r}: {unmixing_errors[r]:.5f} ({unmixing_scores[r]:.3f})"
+                    for r in UNMIXING_RIDGES), flush=True)
     turn_ridge, turn_scores = held_out_turn_ridge(unmixed[unmixing_ridge], errors)
     print("make_appearance_model: held-out median turn error (deg) by the turn bias's ridge: " +
           ", ".join(f"{r}: {score:.3f}" for r, score in turn_scores.items()), flush=True)

@@ -64,11 +64,13 @@ def test_gaze_follows_the_eyes(tracked_eyes):
     assert np.corrcoef(pitch[frames], take.pitch[frames])[0, 1] >= 0.9
 
 
-# Measured: the keys the eyes do not read (the take moves only the eyes and lids) reach 0.24
-# (browDown_L) in the blinks, 0.19 (browDown_R) between them; before those keys were solved
-# from the landmarks alone, the eye keys' motion not taken off them (core.session): 0.66
-# (browOuterUp_R), 0.88 (browDown_L). Checked with a margin.
-MEASURED_OTHER_KEYS = 0.3
+# Measured: the keys the eyes do not read (the take moves only the eyes and lids) reach 0.14
+# (cheekSquint_R) in the blinks, 0.07 between them (0.17, cheekRaiser_R, and 0.09 before the
+# appearance map's reading was un-mixed; 0.38 with the un-mixing's penalty at 0.03, not chosen;
+# 0.24 and 0.19, the brows, before the map). Before those keys were solved from the landmarks
+# alone, the eye keys' motion not taken off them (core.session): 0.66 (browOuterUp_R), 0.88
+# (browDown_L). Checked with a margin.
+MEASURED_OTHER_KEYS = 0.2
 
 
 def test_blinks_and_gaze_move_no_other_key_as_measured(tracked_eyes):

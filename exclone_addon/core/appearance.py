@@ -18,7 +18,7 @@ some of the others' into it (on frames it was not learnt from, a frown at 0.15-0
 weight, the mouth's stretch and an open jaw at about a third of that). That response is learnt
 too (learn_response: what the map reads per unit of each key, on frames of takes it was not
 learnt from), and the weights shown are the ones in [0, 1] whose response best explains what
-the map read: a bounded least squares, with a small penalty on the weights (unmixed_weights).
+the map read: a bounded least squares, with a penalty on the weights (unmixed_weights).
 
 The same keys' weights say how the fit misreads the head's turn: FaceMesh's points move with a
 sneer or a pucker in ways the shape model partly explains as a pitch or a yaw. What remains of
