@@ -34,9 +34,9 @@ OTHER_IDENTITY = 7
 # shape of identity 7 at least 0.75, but the turning face's keys the eyes do not read 0.35 and a
 # blink's 0.38. With every key following the map's weights as their motion at the tracker's
 # points: 0.859, 0.031; 0.866, 0.032; 0.883, 0.028 (before the un-mixing 0.853, 0.033; 0.867,
-# 0.034; 0.899, 0.030). Before
-# the map read the points' weights (share 0.75): 0.886, 0.040; 0.893, 0.042; 0.913, 0.034 (the
-# frowns 0.54 / 0.63, 0.56 / 0.77, 0.55 / 0.49); every key following the motion
+# 0.034; 0.899, 0.030). Before the map read the points' weights (share 0.75): 0.886, 0.040;
+# 0.893, 0.042; 0.913, 0.034 (the frowns 0.54 / 0.63, 0.56 / 0.77, 0.55 / 0.49); every key
+# following the motion
 # 0.845, 0.035; 0.863, 0.035; 0.879, 0.032 (the frowns -0.06 / 0.51, 0.00 / 0.69, 0.33 / 0.21).
 # Without the appearance, with the tracker model learnt from
 # FaceMesh's points on other ICT identities (scripts/make_tracker_model.py) and the material
