@@ -198,3 +198,25 @@ def test_a_turned_eyes_lids_count_less():
                                 NEUTRAL.iris, facing=facing)
     weights = solver.solve(np.zeros((10, 3)), *targets.rows(squinting))
     assert weights[0] < weights[1], weights
+
+
+def test_a_turned_eyes_lower_lid_counts_less_than_its_upper_lid():
+    """The iris model loses a turned eye's lower lid first: facing the camera, a wide and a
+    squint of the same size are read alike; with the eye turned (facing 0.85) the squint, read
+    from the lower lid, is held back far more than the wide, read from the upper."""
+    names = ["eyeWide_R", "eyeSquint_R"]
+    solver = WeightSolver(np.zeros((2, 10, 3)), names, ridge=1.0, scale=1.0)
+    targets = eyes.EyeTargets(names, NEUTRAL, key_scale=1.0)
+    changes = {key: (up, down) for key, up, down in eyes.LID_CHANGES}
+    opening = NEUTRAL.opening
+    read = {}
+    for facing in (1.0, 0.85):
+        # each lid moved as half of its key does
+        reading = eyes.EyeReading(NEUTRAL.upper + 0.5 * changes["eyeWide"][0] * opening,
+                                  NEUTRAL.lower + 0.5 * changes["eyeSquint"][1] * opening,
+                                  NEUTRAL.iris, facing=np.full(2, facing))
+        read[facing] = solver.solve(np.zeros((10, 3)), *targets.rows(reading))
+    wide, squint = read[1.0]
+    assert squint > 0.8 * wide > 0.2, read
+    wide, squint = read[0.85]
+    assert squint < 0.2 * wide, read

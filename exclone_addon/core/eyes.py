@@ -56,6 +56,10 @@ EYE_LOOK_FULL_DEG = 30.0
 # upper lid's height, of the lower lid's), in units of the neutral opening. A closed eye's
 # contours keep about half the neutral gap, the upper lid coming most of the way (measured on
 # rendered blinks: -0.45 and +0.1); the lids follow the eyes a little as they look up or down.
+# eyeWide and eyeSquint move the lids less than these say (0.09-0.10 and 0.04-0.05, measured on
+# the appearance map's training takes, against a frame's error of 0.03): the measured values
+# read them at twice the gain but raise the largest false lid weight's 90th percentile there
+# 0.27 -> 0.40, so these read them at a low gain (docs/method.md §10).
 LID_CHANGES = (("eyeBlink", -0.45, 0.10), ("eyeWide", 0.30, 0.0), ("eyeSquint", 0.0, 0.25),
                ("eyeLookUp", 0.15, 0.0), ("eyeLookDown", -0.15, 0.0))
 # The eyes are closing when their mean opening is below this fraction of the neutral one: their
@@ -65,16 +69,27 @@ LID_CHANGES = (("eyeBlink", -0.45, 0.10), ("eyeWide", 0.30, 0.0), ("eyeSquint", 
 OPEN_FRACTION = 0.8
 # How much a target row counts against the landmarks, per unit of a key's mean landmark norm.
 EYE_TRUST = 30.0
-# A turned or pitched eye's lid rows count less, by its facing (EyeReading.facing) to this power:
-# the iris model reads a foreshortened eye's lids worse (the far eye of a turned head, partly
-# behind the nose; a pitched head's eyes along their lids, docs/method.md §10). The power 4
-# makes the weight about the square of the eye's width in the image against a frontal one's
-# (as conjugate_gaze weighs the gaze): on the rendered turning take (the head up
-# to 30 deg) the far eye's facing reads 0.78 where its width in the image is 0.69 of the frontal.
-# There, after the learnt slide, the far eye's upper lid still read 0.13-0.16 of its opening high
-# at 30 deg (eyeWide_L 0.40, answered by browDown_L 0.86); weighed with power 2: 0.75
-# (browDown_L), the eyes' keys 0.58; with 4: 0.64 (mouthLowerDown_L, not an eye's), 0.56.
-LID_FACING_POWER = 4
+# A turned or pitched eye's lid rows count less, by its facing (EyeReading.facing) to these
+# powers: the iris model reads a foreshortened eye's lids worse (the far eye of a turned head,
+# partly behind the nose; a pitched head's eyes along their lids, docs/method.md §10). The power
+# 4 makes the weight about the square of the eye's width in the image against a frontal one's
+# (as conjugate_gaze weighs the gaze): on the rendered turning take (the head up to 30 deg) the
+# far eye's facing reads 0.78 where its width in the image is 0.69 of the frontal. There, after
+# the learnt slide, the far eye's upper lid still read 0.13-0.16 of its opening high at 30 deg
+# (eyeWide_L 0.40, answered by browDown_L 0.86); weighed with power 2: 0.75 (browDown_L), the
+# eyes' keys 0.58; with 4: 0.64 (mouthLowerDown_L, not an eye's), 0.56.
+UPPER_LID_FACING_POWER = 4
+# The lower lid's row counts far less still: the iris model loses it first. On the appearance
+# map's training takes (96 ICT heads, tracked as a camera's frames; frames without eye keys) its
+# error against the head's own neutral grows from 0.031 of the opening (rms) facing the camera
+# to 0.063 at facing 0.8-0.85 and 0.117 at 0.75-0.8, the upper lid's from 0.043 to 0.066 and
+# 0.063; the errors last (frame-to-frame correlation 0.82) and a squint moves the lower lid
+# little, so a turned eye's lower lid reads as a squint. There, on 32 of the takes, the
+# squint's squared error with the lower lid's power at 4 / 8 / 12 / 16 / 24: 0.0197 / 0.0133 /
+# 0.0091 / 0.0074 / 0.0061, falling as the squint is read less; the blinks and eyeWide unchanged,
+# the squint's reading at its peaks facing the camera 0.20 / 0.20 / 0.20 / 0.19 / 0.18 of the
+# truth: 12 halves the error and keeps the frontal squint as it was.
+LOWER_LID_FACING_POWER = 12
 
 
 @dataclass
@@ -333,19 +348,20 @@ class EyeTargets:
 
     def rows(self, reading):
         """(rows (k, N), targets (k,)) for one frame's EyeReading: rows @ weights ~ targets, a
-        turned eye's lid rows weighed down (LID_FACING_POWER); None twice when the avatar has
-        none of the keys."""
+        turned eye's lid rows weighed down (UPPER_ and LOWER_LID_FACING_POWER); None twice when
+        the avatar has none of the keys."""
         opening0 = np.maximum(self.neutral.opening, 1e-12)
         upper = (reading.upper - self.neutral.upper) / opening0
         lower = (reading.lower - self.neutral.lower) / opening0
         if np.mean(reading.opening / opening0) > OPEN_FRACTION:
             self._open_gaze = conjugate_gaze(reading, self.neutral)
-        lid_trust = np.ones(2) if reading.facing is None else reading.facing ** LID_FACING_POWER
+        facing = np.ones(2) if reading.facing is None else reading.facing
         rows, targets = [], []
         for k, eye_rows in enumerate(self._rows):
             values = (upper[k], lower[k], self._open_gaze[k, 0] / EYE_LOOK_FULL_DEG,
                       self._open_gaze[k, 1] / EYE_LOOK_FULL_DEG)
-            trust = (lid_trust[k], lid_trust[k], 1.0, 1.0)
+            trust = (facing[k] ** UPPER_LID_FACING_POWER, facing[k] ** LOWER_LID_FACING_POWER,
+                     1.0, 1.0)
             for row, value, weight in zip(eye_rows, values, trust):
                 if row is not None:
                     rows.append(weight * row)
