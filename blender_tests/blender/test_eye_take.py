@@ -1,7 +1,8 @@
 """Blinks and gaze through the image models: the bundled ICT head rendered in background Blender
-blinking (150 ms blinks among them) and looking about with known eye turns up to 20 degrees
-(blender_tests/helpers/eye_takes.py), tracked by FaceTrackingSession.step as a camera's frames
-are, onto the same head (so the ideal answer is the truth)."""
+blinking (150 ms blinks among them) and looking about with known eye turns up to 20 degrees,
+facing the camera and turning (up to 25 degrees of yaw; blender_tests/helpers/eye_takes.py),
+tracked by FaceTrackingSession.step as a camera's frames are, onto the same head (so the ideal
+answer is the truth)."""
 import cv2
 import numpy as np
 import pytest
@@ -13,9 +14,9 @@ from exclone_addon.core.tracker_model import read_tracker_locations
 from blender_tests.helpers.eye_takes import BLINKS, CALIBRATION_FRAMES, FPS, rendered_eye_take
 
 
-@pytest.fixture(scope="module")
-def tracked_eyes():
-    take = rendered_eye_take()
+@pytest.fixture(scope="module", params=["facing", "turning"])
+def tracked_eyes(request):
+    take = rendered_eye_take(turning=request.param == "turning")
     library = load_library()
     avatar = AvatarRig.from_locations(library.mesh.vertices, library.deltas, library.names,
                                       read_tracker_locations())
@@ -54,23 +55,39 @@ def test_no_false_blink(tracked_eyes):
         assert np.max(weights[name][open_eyes]) < 0.5
 
 
+def kind(take):
+    return "turning" if take.turning else "facing"
+
+
+# The least correlation of the gaze's yaw and pitch with the truth: the target, 0.9, facing the
+# camera (measured 0.988 and 0.974). With the head turning the pitch is short of it: measured
+# 0.962 and 0.810, checked with a margin. The pitch also reads at about half its size (0.034 per
+# degree of the eyes' pitch where a full eyeLook pair gives 0.067; the yaw 0.061): the iris
+# model's iris moves about half as far up and down as the geometry says, on six ICT heads
+# (0.43-0.57 of the yaw's gain). Read at its full size, the turning neutral face's false gaze
+# rises from 0.24-0.35 to 0.38-0.55 on four heads (eyeLookUp / Down): not done.
+GAZE_CORRELATION = {"facing": (0.9, 0.9), "turning": (0.9, 0.75)}
+
+
 def test_gaze_follows_the_eyes(tracked_eyes):
     """The ARKit reading yaw = Out_L + In_R - In_L - Out_R (and pitch = Up - Down) against the
     true eye turn over the frames with open eyes."""
     take, _, yaw, pitch = tracked_eyes
     frames = np.flatnonzero(take.blink == 0)
     frames = frames[frames >= CALIBRATION_FRAMES]
-    assert np.corrcoef(yaw[frames], take.yaw[frames])[0, 1] >= 0.9
-    assert np.corrcoef(pitch[frames], take.pitch[frames])[0, 1] >= 0.9
+    least_yaw, least_pitch = GAZE_CORRELATION[kind(take)]
+    assert np.corrcoef(yaw[frames], take.yaw[frames])[0, 1] >= least_yaw
+    assert np.corrcoef(pitch[frames], take.pitch[frames])[0, 1] >= least_pitch
 
 
-# Measured: the keys the eyes do not read (the take moves only the eyes and lids) reach 0.14
-# (cheekSquint_R) in the blinks, 0.07 between them (0.17, cheekRaiser_R, and 0.09 before the
-# appearance map's reading was un-mixed; 0.38 with the un-mixing's penalty at 0.03, not chosen;
-# 0.24 and 0.19, the brows, before the map). Before those keys were solved from the landmarks
-# alone, the eye keys' motion not taken off them (core.session): 0.66 (browOuterUp_R), 0.88
-# (browDown_L). Checked with a margin.
-MEASURED_OTHER_KEYS = 0.2
+# Measured facing the camera: the keys the eyes do not read (the take moves only the eyes and
+# lids) reach 0.14 (cheekSquint_R) in the blinks, 0.07 between them (0.17, cheekRaiser_R, and
+# 0.09 before the appearance map's reading was un-mixed; 0.38 with the un-mixing's penalty at
+# 0.03, not chosen; 0.24 and 0.19, the brows, before the map). Before those keys were solved
+# from the landmarks alone, the eye keys' motion not taken off them (core.session): 0.66
+# (browOuterUp_R), 0.88 (browDown_L). With the head turning: 0.21 (browOuterUp_R). Checked with
+# a margin.
+MEASURED_OTHER_KEYS = {"facing": 0.2, "turning": 0.25}
 
 
 def test_blinks_and_gaze_move_no_other_key_as_measured(tracked_eyes):
@@ -78,7 +95,8 @@ def test_blinks_and_gaze_move_no_other_key_as_measured(tracked_eyes):
     others = {name: values[CALIBRATION_FRAMES:] for name, values in weights.items()
               if not name.startswith("eye")}
     name = max(others, key=lambda n: np.max(others[n]))
-    assert np.max(others[name]) <= MEASURED_OTHER_KEYS, f"{name} reached {np.max(others[name]):.2f}"
+    most = MEASURED_OTHER_KEYS[kind(take)]
+    assert np.max(others[name]) <= most, f"{name} reached {np.max(others[name]):.2f}"
 
 
 def test_a_blink_is_not_read_as_looking_down(tracked_eyes):

@@ -1,6 +1,7 @@
-"""An eye take: the bundled ICT head facing the camera, blinking (eyeBlink_L/R, 150 ms blinks
-among them) and looking about (its eyeballs turned by known angles, up to 20 degrees), rendered
-in background Blender by scripts/render_faces.py and cached on disk by its recipe.
+"""An eye take: the bundled ICT head blinking (eyeBlink_L/R, 150 ms blinks among them) and
+looking about (its eyeballs turned by known angles, up to 20 degrees), facing the camera or
+turning (up to 25 degrees of yaw), rendered in background Blender by scripts/render_faces.py and
+cached on disk by its recipe.
 """
 import hashlib
 import sys
@@ -30,6 +31,9 @@ GAZE_DEG = 20.0
 BLINKS = ((50, 5), (82, 4), (110, 8), (140, 5), (172, 4), (205, 6))
 EYE_CACHE = Path(tempfile.gettempdir()) / "exclone_eye_takes"
 EYE_TAKE_VERSION = 1      # bump when the recipe or the renderer changes
+# The turning take's head: the largest turn about y, x, z (camera axes, degrees), reached slowly
+# (periods of 8-14 s), from a second's calibration turning a little as a session's does.
+HEAD_TURN_DEG = (25.0, 15.0, 8.0)
 
 
 def blink_profile(frames):
@@ -53,6 +57,20 @@ def eye_recipe(frames=EYE_FRAMES):
     return blink, yaw, pitch
 
 
+def head_turns(frames=EYE_FRAMES, turning=False):
+    """The head's turn in each frame (model -> camera): facing the camera, or turning."""
+    if not turning:
+        return Rotation.concatenate([FRONTAL] * frames)
+    t = (np.arange(frames) - CALIBRATION_FRAMES) / FPS
+    ease = np.clip(t, 0.0, 1.0)[:, None]          # from the calibration's turn over a second
+    angles = ease * HEAD_TURN_DEG * np.sin(2 * np.pi * np.array([0.13, 0.09, 0.07]) * t[:, None]
+                                           + [0.5, 2.0, 0.0])
+    c = np.arange(CALIBRATION_FRAMES) / FPS
+    angles[:CALIBRATION_FRAMES] = np.column_stack((10 * np.sin(2 * np.pi * c),
+                                                   5 * np.sin(4 * np.pi * c), 0 * c))
+    return Rotation.from_euler("yxz", angles, degrees=True) * FRONTAL
+
+
 def turned_eyes(vertices, eyeballs, yaw_deg, pitch_deg):
     """The head's vertices with both eyeballs (vertex range `eyeballs`) turned about their
     centres: yaw about +Y (towards +X, the subject's left), then pitch up."""
@@ -68,22 +86,26 @@ def turned_eyes(vertices, eyeballs, yaw_deg, pitch_deg):
     return turned
 
 
-def _key(frames):
+def _key(frames, turning):
     text = f"v{EYE_TAKE_VERSION}-{frames}-{IMAGE_SIZE}-{DISTANCE_CM}-{BLINKS}-{GAZE_DEG}"
+    if turning:
+        text += f"-turning{HEAD_TURN_DEG}"
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-def rendered_eye_take(frames=EYE_FRAMES):
+def rendered_eye_take(frames=EYE_FRAMES, turning=False):
     """The take's frames (PNG paths), its truth (blink, yaw, pitch), the camera and the CPU
-    seconds a frame took to render (0 when read from the cache)."""
+    seconds a frame took to render (0 when read from the cache); the head facing the camera, or
+    turning (head_turns)."""
     blink, yaw, pitch = eye_recipe(frames)
-    paths, seconds = cached_frames(EYE_CACHE / _key(frames), frames,
-                                   lambda paths: _render(paths, blink, yaw, pitch))
-    return SimpleNamespace(frames=paths, blink=blink, yaw=yaw, pitch=pitch,
+    rotations = head_turns(frames, turning)
+    paths, seconds = cached_frames(EYE_CACHE / _key(frames, turning), frames,
+                                   lambda paths: _render(paths, blink, yaw, pitch, rotations))
+    return SimpleNamespace(frames=paths, blink=blink, yaw=yaw, pitch=pitch, turning=turning,
                            camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds)
 
 
-def _render(paths, blink, yaw, pitch):
+def _render(paths, blink, yaw, pitch, rotations):
     import render_faces      # needs bpy
     library = load_library()
     vertices, parts = library.mesh.vertices, library.parts
@@ -98,5 +120,5 @@ def _render(paths, blink, yaw, pitch):
     start = time.process_time()
     for k, path in enumerate(paths):
         posed = turned_eyes(vertices + blink[k] * closing, parts["eyeballs"], yaw[k], pitch[k])
-        renderer.render(FRONTAL.apply(posed - centre) + translation, path)
+        renderer.render(rotations[k].apply(posed - centre) + translation, path)
     return (time.process_time() - start) / len(paths)
