@@ -279,9 +279,8 @@ def test_a_turning_neutral_face_moves_the_keys_the_eyes_do_not_read_little(take_
                                        "moves 0.053 eye widths per unit of the turn's "
                                        "direction, a slide of this head's own: the training "
                                        "heads' slopes spread by 0.07; the keys the eyes do "
-                                       "not read 0.21, "
-                                       "browDown_R; FaceMesh's fit alone 0.55, browDown_L). "
-                                       "With the true points' "
+                                       "not read 0.21, browDown_R; FaceMesh's fit alone 0.55, "
+                                       "browDown_L). With the true points' "
                                        "projections 0.04: FaceMesh's points slide as the head "
                                        "turns, and the learnt slide leaves 1.4 px median (a slide "
                                        "fitted to this head's own frames: 0.7)")
