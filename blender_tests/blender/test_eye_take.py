@@ -65,7 +65,8 @@ def kind(take):
 # degree of the eyes' pitch where a full eyeLook pair gives 0.067; the yaw 0.061): the iris
 # model's iris moves about half as far up and down as the geometry says, on six ICT heads
 # (0.43-0.57 of the yaw's gain). Read at its full size, the turning neutral face's false gaze
-# rises from 0.24-0.35 to 0.38-0.55 on four heads (eyeLookUp / Down): not done.
+# rises from 0.24-0.35 to 0.38-0.55 on four heads (eyeLookUp / Down) and the weakest blink here
+# falls 0.57 -> 0.50: not done.
 GAZE_CORRELATION = {"facing": (0.9, 0.9), "turning": (0.9, 0.75)}
 
 
