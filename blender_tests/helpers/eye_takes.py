@@ -17,6 +17,7 @@ from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import read_tracker_locations
 from exclone_addon.core.tracking import FRONTAL, Camera
 from blender_tests.helpers.frame_cache import cached_frames
+from blender_tests.helpers.takes import small_calibration_turn
 from blender_tests.helpers.paths import REPO_ROOT
 
 sys.path.insert(0, str(REPO_ROOT / "scripts"))   # render_faces (rendering only)
@@ -32,7 +33,7 @@ BLINKS = ((50, 5), (82, 4), (110, 8), (140, 5), (172, 4), (205, 6))
 EYE_CACHE = Path(tempfile.gettempdir()) / "exclone_eye_takes"
 EYE_TAKE_VERSION = 1      # bump when the recipe or the renderer changes
 # The turning take's head: the largest turn about y, x, z (camera axes, degrees), reached slowly
-# (periods of 8-14 s), from a second's calibration turning a little as a session's does.
+# (periods of 8-14 s), from a second's calibration turning a little (takes.small_calibration_turn).
 HEAD_TURN_DEG = (25.0, 15.0, 8.0)
 
 
@@ -65,9 +66,7 @@ def head_turns(frames=EYE_FRAMES, turning=False):
     ease = np.clip(t, 0.0, 1.0)[:, None]          # from the calibration's turn over a second
     angles = ease * HEAD_TURN_DEG * np.sin(2 * np.pi * np.array([0.13, 0.09, 0.07]) * t[:, None]
                                            + [0.5, 2.0, 0.0])
-    c = np.arange(CALIBRATION_FRAMES) / FPS
-    angles[:CALIBRATION_FRAMES] = np.column_stack((10 * np.sin(2 * np.pi * c),
-                                                   5 * np.sin(4 * np.pi * c), 0 * c))
+    angles[:CALIBRATION_FRAMES] = small_calibration_turn(CALIBRATION_FRAMES)
     return Rotation.from_euler("yxz", angles, degrees=True) * FRONTAL
 
 
@@ -89,7 +88,7 @@ def turned_eyes(vertices, eyeballs, yaw_deg, pitch_deg):
 def _key(frames, turning):
     text = f"v{EYE_TAKE_VERSION}-{frames}-{IMAGE_SIZE}-{DISTANCE_CM}-{BLINKS}-{GAZE_DEG}"
     if turning:
-        text += f"-turning{HEAD_TURN_DEG}"
+        text += f"-turning{HEAD_TURN_DEG}-calibration2"
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 

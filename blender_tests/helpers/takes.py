@@ -215,9 +215,15 @@ def take_recipe(kind, frames=None, seed=3, calibration="small"):
         angles[:calibration_frames] = np.column_stack((30 * np.sin(2 * np.pi * c / period),
                                                        20 * np.sin(4 * np.pi * c / period), 0 * c))
     else:
-        angles[:calibration_frames] = np.column_stack((10 * np.sin(2 * np.pi * c),
-                                                       6 * np.sin(4 * np.pi * c), 0 * c))
+        angles[:calibration_frames] = small_calibration_turn(calibration_frames)
     return weights, angles
+
+
+def small_calibration_turn(frames=CALIBRATION_FRAMES):
+    """(frames, 3) the head's turn (camera axes, yxz Euler degrees) while a session's one-second
+    calibration reads a neutral face: 10 deg of yaw and 6 of pitch, as an actor settles."""
+    c = np.arange(frames) / FPS
+    return np.column_stack((10 * np.sin(2 * np.pi * c), 6 * np.sin(4 * np.pi * c), 0 * c))
 
 
 def identity_head(identity):
