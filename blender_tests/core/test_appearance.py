@@ -12,7 +12,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from exclone_addon.core import data
-from exclone_addon.core.appearance import (FEATURES, FRONTAL_SIZE, FaceFrontaliser,
+from exclone_addon.core.appearance import (FEATURES, FRONTAL_SIZE, GRADIENT_BINS,
+                                           SHADING_FEATURES, FaceFrontaliser,
                                            learn_appearance_map, learn_response,
                                            learn_turn_bias, read_appearance_map,
                                            unmixed_weights, write_appearance_map)
@@ -42,7 +43,10 @@ def test_a_face_made_by_an_affine_map_comes_back_onto_the_grid():
     assert np.abs(frontal - expected)[inside].max() < 0.05
 
 
-def test_a_brighter_face_reads_the_same_and_off_the_face_reads_nought():
+def test_a_brighter_face_reads_the_same_and_off_the_face_its_shading_reads_nought():
+    """The ramp's shading reads its brightness over the median; its edges, one direction
+    everywhere (the ramp's gradient, 28 degrees from the grid's x axis), fall most in that
+    direction's histogram bin."""
     mean = load_tracker_model().shape_model.mean
     frontaliser = FaceFrontaliser(mean)
     affine = np.array([[2.0, 0.0, 200.0], [0.0, 2.0, 140.0]])
@@ -52,11 +56,13 @@ def test_a_brighter_face_reads_the_same_and_off_the_face_reads_nought():
     brighter = frontaliser.reading(1.6 * image, image_points)
     assert reading.shape == (FEATURES,)
     np.testing.assert_allclose(brighter, reading, atol=1e-5)
-    on_face = reading != 0
+    shading = reading[:SHADING_FEATURES]
+    on_face = shading != 0
     assert 0.5 < on_face.mean() < 1.0     # the grid's corners are off the face
-    assert np.median(reading[on_face]) == pytest.approx(1.0, abs=0.02)
-
-
+    assert np.median(shading[on_face]) == pytest.approx(1.0, abs=0.02)
+    # the bins split 0-180 degrees
+    bins = reading[SHADING_FEATURES:].reshape(-1, GRADIENT_BINS).sum(axis=0)
+    assert bins.argmax() == int(np.degrees(np.arctan2(0.8, 1.5)) // (180 / GRADIENT_BINS))
 def test_a_map_learnt_from_linear_readings_gives_the_weights_back():
     """The readings linear in the weights; the points' weights a faint, noisy echo of them (as
     FaceMesh's points read a frown): the map reads the weights back from both, the points'
