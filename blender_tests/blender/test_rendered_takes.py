@@ -68,12 +68,14 @@ MEASURED_WITHOUT_APPEARANCE = 0.63
 # 2.91; 1.48, 3.34, pitch 1.05; 0.57, 2.04; before the un-mixing: 1.28, 2.77; 1.16, 2.84; 1.54,
 # 3.55; 0.57, 1.78). (Without the map's: 1.32, 2.86; 1.16, 2.80; 1.60, 3.64, pitch 1.06; 0.61, 1.92.
 # Without either: 1.45, 2.56; 1.42, 2.97; 1.55, 3.58; 0.69,
-# 1.92. Turns not checked here, the biases learnt without them: ICT identities 11, 23, 31 and
-# 42 1.79 / 3.29, 1.18 / 2.82, 1.41 / 3.10, 1.54 / 3.16 (identity 11's pitch at 0.91 of its
-# size; before the un-mixing 1.75 / 3.26, 1.25 / 3.02, 1.33 / 3.19, 1.58 / 3.41); without the
-# map's bias 1.75 / 3.23, 1.35 / 3.07, 1.34 / 3.19, 1.60 / 3.47; without
-# either 1.95 / 3.98, 1.57 / 3.15, 1.51 / 3.16, 1.76 / 3.59. Before the fit saw the modes as FaceMesh does and with the rotation's
-# filter at 1 Hz: 1.57, 3.23; 1.48, 2.95; 1.52, 4.32. The located points' model with FaceMesh's
+# 1.92. Turns not checked here, the biases learnt without them: ICT identities 11, 23, 31 and 42
+# 1.83 / 3.32, 1.24 / 3.03, 1.52 / 3.22, 1.57 / 3.41 (identity 11's pitch at 0.90 of its size); with
+# the map reading the shading alone 1.79 / 3.29, 1.18 / 2.82, 1.41 / 3.10, 1.54 / 3.16 (identity
+# 11's pitch at 0.91; before the un-mixing 1.75 / 3.26, 1.25 / 3.02, 1.33 / 3.19, 1.58 / 3.41);
+# without the map's bias 1.75 / 3.23, 1.35 / 3.07, 1.34 / 3.19, 1.60 / 3.47; without either 1.95 /
+# 3.98, 1.57 / 3.15, 1.51 / 3.16, 1.76 / 3.59. Before the fit saw the modes as FaceMesh does and
+# with the rotation's filter at 1 Hz: 1.57, 3.23; 1.48, 2.95; 1.52, 4.32. The located points' model
+# with FaceMesh's
 # depth, on the same frames: moving 2.23, 6.43, pitch 0.85; turning 2.47, 6.63, pitch 0.85;
 # identity 7: 2.38, 6.62, pitch 0.86.)
 MEASURED_POSE = {"moving": (1.6, 3.2), "turning": (1.5, 3.3), "other_identity": (1.85, 4.3)}

@@ -63,6 +63,8 @@ def test_a_brighter_face_reads_the_same_and_off_the_face_its_shading_reads_nough
     # the bins split 0-180 degrees
     bins = reading[SHADING_FEATURES:].reshape(-1, GRADIENT_BINS).sum(axis=0)
     assert bins.argmax() == int(np.degrees(np.arctan2(0.8, 1.5)) // (180 / GRADIENT_BINS))
+
+
 def test_a_map_learnt_from_linear_readings_gives_the_weights_back():
     """The readings linear in the weights; the points' weights a faint, noisy echo of them (as
     FaceMesh's points read a frown): the map reads the weights back from both, the points'
