@@ -51,8 +51,15 @@ SHADING_FEATURES = SHADING_SIZE[0] * SHADING_SIZE[1]
 # 0.36-0.38 (docs/method.md §12).
 GRADIENT_CELL = 8
 GRADIENT_BINS = 9
-GRADIENT_FEATURES = ((FRONTAL_SIZE[0] // GRADIENT_CELL - 1) * (FRONTAL_SIZE[1] // GRADIENT_CELL - 1)
-                     * 4 * GRADIENT_BINS)
+
+
+def gradient_descriptor():
+    """The HOG that reads the grid's edges (its blocks step by one cell)."""
+    cell = (GRADIENT_CELL, GRADIENT_CELL)
+    return cv2.HOGDescriptor(FRONTAL_SIZE, (2 * GRADIENT_CELL,) * 2, cell, cell, GRADIENT_BINS)
+
+
+GRADIENT_FEATURES = gradient_descriptor().getDescriptorSize()
 FEATURES = SHADING_FEATURES + GRADIENT_FEATURES
 # The grid's median brightness before its edges are read (8-bit, as HOG takes them).
 GRADIENT_BRIGHTNESS = 100.0
@@ -86,9 +93,7 @@ class FaceFrontaliser:
         small = cv2.resize(self.inside.reshape(height, width).astype(np.float32), SHADING_SIZE,
                            interpolation=cv2.INTER_AREA)
         self._shading_mask = (small > 0.999).ravel()    # cells wholly on the face
-        cell = (GRADIENT_CELL, GRADIENT_CELL)
-        self._gradients = cv2.HOGDescriptor(FRONTAL_SIZE, (2 * GRADIENT_CELL,) * 2, cell, cell,
-                                            GRADIENT_BINS)
+        self._gradients = gradient_descriptor()
 
     def frontal(self, gray, image_points):
         """The face on the grid (height, width) float32; image_points (n, 2): the points posed
@@ -206,12 +211,11 @@ def learn_appearance_maps(changes, points_weights, weights, names, motion, choic
     found once. The edges and the points' weights are scaled to the shading's spread first, so
     that the principal axes weigh the three alike."""
     features = np.hstack((changes, points_weights))
-    blocks = (slice(SHADING_FEATURES, FEATURES), slice(FEATURES, None))
+    shading_spread = changes[:, :SHADING_FEATURES].std()
     scales = np.ones(features.shape[1])
-    for block in blocks:
-        scales[block] = changes[:, :SHADING_FEATURES].std() / max(float(
-            features[:, block].std()), 1e-12)
-    features = features * scales
+    for block in (slice(SHADING_FEATURES, FEATURES), slice(FEATURES, None)):
+        scales[block] = shading_spread / max(float(features[:, block].std()), 1e-12)
+    features *= scales      # in place: the training frames' features are the build's largest array
     centre = features.mean(axis=0)
     _, singular, axes = np.linalg.svd(features - centre, full_matrices=False)
     targets = weights - weights.mean(axis=0)
