@@ -73,8 +73,8 @@ RECIPE_VERSION = 1
 # What the map is chosen from: its principal components and ridge penalty (a share of their
 # mean variance), each pair scored by the mean correlation of its weights with the truth on
 # takes left out (FOLDS of them).
-COMPONENTS = (400, 800, 1500)
-RIDGES = (0.001, 0.01, 0.1)
+COMPONENTS = (800, 1500, 2500)
+RIDGES = (0.01, 0.1, 0.3)
 FOLDS = 4
 SHARES = (0.5, 0.625, 0.75, 0.875, 1.0)
 # The un-mixing's penalties (AppearanceMap.unmixing_ridge) it is chosen from, by the folds'
