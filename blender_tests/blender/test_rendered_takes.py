@@ -132,15 +132,15 @@ def test_weights_follow_the_rendered_face_as_measured(take_name, request):
     assert correlations.mean() >= least_mean and mae <= most_mae, f"MAE {mae:.3f}; {text}"
 
 
-# The same moving take on ICT identities no build step learns from (seeds of the identity
-# model): measured (mean correlation, MAE) 11: 0.916, 0.025; 23: 0.913, 0.029; 31: 0.915, 0.029;
-# 42: 0.946, 0.025, the lowest shapes browDown_L on 11 (0.45; 0.68 on 23 and 31) and mouthFrown_R
-# (0.60-0.79). With the map's 1,500 components: 0.894, 0.027; 0.876, 0.031; 0.903, 0.030; 0.933,
-# 0.026, browDown_L on 11 and 23 0.27, 0.26. Before the map read the face's edges: 0.852, 0.033;
-# 0.808, 0.039; 0.841, 0.035; 0.885, 0.033, the frowns 0.01-0.62 and browDown_L 0.44-0.77 the lowest (before the un-mixing:
-# 0.845, 0.040; 0.797, 0.048; 0.826, 0.043; 0.877, 0.040; with its penalty at 0.03, not chosen:
-# 0.887, 0.833, 0.865, 0.915; before the map read the points' weights too: 0.816, 0.044; 0.787,
-# 0.050; 0.810, 0.047; 0.858, 0.044).
+# The same moving take on ICT identities no build step learns from (seeds of the identity model):
+# measured (mean correlation, MAE) 11: 0.916, 0.025; 23: 0.913, 0.029; 31: 0.915, 0.029; 42: 0.946,
+# 0.025, the lowest shapes browDown_L on 11 (0.45; 0.68 on 23 and 31) and mouthFrown_R (0.60-0.79).
+# With the map's 1,500 components: 0.894, 0.027; 0.876, 0.031; 0.903, 0.030; 0.933, 0.026,
+# browDown_L on 11 and 23 0.27, 0.26. Before the map read the face's edges: 0.852, 0.033; 0.808,
+# 0.039; 0.841, 0.035; 0.885, 0.033, the frowns 0.01-0.62 and browDown_L 0.44-0.77 the lowest
+# (before the un-mixing: 0.845, 0.040; 0.797, 0.048; 0.826, 0.043; 0.877, 0.040; with its penalty at
+# 0.03, not chosen: 0.887, 0.833, 0.865, 0.915; before the map read the points' weights too: 0.816,
+# 0.044; 0.787, 0.050; 0.810, 0.047; 0.858, 0.044).
 MEASURED_UNSEEN_IDENTITIES = {11: (0.89, 0.028), 23: (0.89, 0.032), 31: (0.89, 0.032),
                               42: (0.92, 0.028)}
 
