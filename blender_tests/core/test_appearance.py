@@ -22,12 +22,17 @@ from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import load_tracker_model
 
 
+# The ramp's value at grid point (x, y): RAMP_LEVEL + RAMP_SLOPE @ (x, y).
+RAMP_LEVEL = 40.0
+RAMP_SLOPE = np.array([1.5, 0.8])
+
+
 def _ramp_image(affine, size=(640, 480)):
-    """A grey image whose value at pixel p is a known linear function of affine^-1 p."""
+    """A grey image whose value at pixel p is the ramp at affine^-1 p."""
     columns, rows = np.meshgrid(np.arange(size[0]), np.arange(size[1]))
     pixels = np.stack((columns, rows), axis=-1).astype(np.float64)
     grid = (pixels - affine[:, 2]) @ np.linalg.inv(affine[:, :2]).T
-    return (40.0 + 1.5 * grid[..., 0] + 0.8 * grid[..., 1]).astype(np.float32)
+    return (RAMP_LEVEL + grid @ RAMP_SLOPE).astype(np.float32)
 
 
 def test_a_face_made_by_an_affine_map_comes_back_onto_the_grid():
@@ -37,7 +42,7 @@ def test_a_face_made_by_an_affine_map_comes_back_onto_the_grid():
     image_points = frontaliser.grid_points @ affine[:, :2].T + affine[:, 2]
     frontal = frontaliser.frontal(_ramp_image(affine), image_points)
     rows, columns = np.mgrid[0:FRONTAL_SIZE[1], 0:FRONTAL_SIZE[0]]
-    expected = 40.0 + 1.5 * columns + 0.8 * rows
+    expected = RAMP_LEVEL + RAMP_SLOPE[0] * columns + RAMP_SLOPE[1] * rows
     inside = frontaliser.inside.reshape(FRONTAL_SIZE[1], FRONTAL_SIZE[0])
     assert inside.mean() > 0.6
     assert np.abs(frontal - expected)[inside].max() < 0.05
@@ -62,7 +67,8 @@ def test_a_brighter_face_reads_the_same_and_off_the_face_its_shading_reads_nough
     assert np.median(shading[on_face]) == pytest.approx(1.0, abs=0.02)
     # the bins split 0-180 degrees
     bins = reading[SHADING_FEATURES:].reshape(-1, GRADIENT_BINS).sum(axis=0)
-    assert bins.argmax() == int(np.degrees(np.arctan2(0.8, 1.5)) // (180 / GRADIENT_BINS))
+    direction = np.degrees(np.arctan2(RAMP_SLOPE[1], RAMP_SLOPE[0]))
+    assert bins.argmax() == int(direction // (180 / GRADIENT_BINS))
 
 
 def test_a_map_learnt_from_linear_readings_gives_the_weights_back():
