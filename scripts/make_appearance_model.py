@@ -20,7 +20,8 @@ besides the points (core.appearance, docs/method.md §12):
    without them, at each share;
 5. the map's response: what it reads per unit of each key's weight, on frames of takes it was
    not learnt from (the folds' maps), by which its reading is un-mixed, the un-mixing's penalty
-   chosen by the folds' squared error (responses learnt without the fold's takes);
+   chosen per band of the head's tracked turn from its calibrated pose by the folds' squared
+   error (responses learnt without the fold's takes);
 6. the turn's bias: the tracked head turn's error against the take's true turn, linear in the
    weights the map gives (maps learnt without the take's fold), its penalty chosen by the folds.
 
@@ -79,7 +80,10 @@ FOLDS = 4
 SHARES = (0.5, 0.625, 0.75, 0.875, 1.0)
 # The un-mixing's penalties (AppearanceMap.unmixing_ridge) it is chosen from, by the folds'
 # squared error: the correlation cannot see the un-mixing scale a misread up with an expression.
-UNMIXING_RIDGES = (0.03, 0.1, 0.2, 0.3, 0.5)
+# One is chosen per band of the head's turn from its calibrated pose (deg; bands between these
+# edges): on the folds' frames the best penalty grew with the turn (docs/method.md §12).
+UNMIXING_RIDGES = (0.03, 0.05, 0.1, 0.2, 0.3, 0.5)
+UNMIXING_TURN_EDGES = (10.0, 20.0, 30.0)
 # The turn bias's ridge penalties (per frame) it is chosen from, by the folds' median turn error.
 TURN_RIDGES = (1e-4, 1e-3, 1e-2)
 MOVES_CM = 0.01     # a key the map reads moves some tracker point this far (the pupils' do not)
@@ -151,24 +155,27 @@ def read_take(paths, points_solver=None, avatar=None, appearance_map=True):
     the points' expression's weights by `points_solver` (appearance.points_solver; K = 0
     without it), (T, E) the library keys' weights onto `avatar` read with `appearance_map` (the
     session's `appearance`: without an avatar no map is loaded), (T, 4) the tracked turn (model
-    -> camera, quaternions)), NaN where the session had no face or was calibrating (and
-    without an avatar)."""
+    -> camera, quaternions), (T,) its angle from the calibrated pose (deg, appearance.
+    turn_between)), NaN where the session had no face or was calibrating (and without an
+    avatar)."""
     session = FaceTrackingSession(avatar=avatar, camera=Camera.from_image_size(*IMAGE_SIZE),
                                   calibration_frames=CALIBRATION_FRAMES, appearance=appearance_map)
     readings = np.full((len(paths), appearance.FEATURES), np.nan)
     points = np.full((len(paths), len(points_solver.names) if points_solver else 0), np.nan)
     weights = np.full((len(paths), len(avatar.names) if avatar else 0), np.nan)
     turns = np.full((len(paths), 4), np.nan)
+    from_neutral = np.full(len(paths), np.nan)
     for k, path in enumerate(paths):
         result = session.step(cv2.imread(str(path)), k / FPS)
         if session.expression_reading is not None:
             readings[k] = session.expression_reading
             turns[k] = result.rotation.as_quat()
+            from_neutral[k] = appearance.turn_between(session.neutral_rotation, result.rotation)
             if points_solver is not None:
                 points[k] = points_solver.solve(session.expression_displacement)
         if result.weights is not None:
             weights[k] = [result.weights[name] for name in avatar.names]
-    return readings, points, weights, turns
+    return readings, points, weights, turns, from_neutral
 
 
 def _folds(count, fold):
@@ -216,18 +223,19 @@ def held_out_scores(read, weights):
     return scores
 
 
-def held_out_unmixing(read, weights):
-    """Per penalty of UNMIXING_RIDGES, each take's held-out reads `read` (held_out_weights') un-
-    mixed by the response learnt from the other folds' takes (weights: the truth by take)."""
-    unmixed = {ridge: [None] * len(read) for ridge in UNMIXING_RIDGES}
+def held_out_unmixing(read, weights, ridges_by_frame):
+    """Each take's held-out reads `read` (held_out_weights') un-mixed by the response learnt
+    from the other folds' takes (weights: the truth by take), per name of `ridges_by_frame`:
+    {name: each take's penalty per frame (T,)}."""
+    unmixed = {name: [None] * len(read) for name in ridges_by_frame}
     for fold in range(FOLDS):
         learnt, left = _folds(len(read), fold)
         response = appearance.learn_response([read[k] for k in learnt],
                                              [weights[k] for k in learnt])
-        for ridge in UNMIXING_RIDGES:
+        for name, ridges in ridges_by_frame.items():
             for k in left:
-                unmixed[ridge][k] = np.array([appearance.unmixed_weights(frame, response, ridge)
-                                              for frame in read[k]])
+                unmixed[name][k] = np.array([appearance.unmixed_weights(frame, response, ridge)
+                                             for frame, ridge in zip(read[k], ridges[k])])
     return unmixed
 
 
@@ -237,6 +245,29 @@ def held_out_squared_errors(read, weights):
     truth = np.vstack(weights)
     return {choice: float(np.mean((np.vstack(taken) - truth) ** 2))
             for choice, taken in read.items()}
+
+
+def held_out_unmixing_by_turn(read, weights, turns):
+    """The un-mixing's penalties by turn (AppearanceMap's unmixing_turns, unmixing_ridges): per
+    band of the turn from the calibrated pose (UNMIXING_TURN_EDGES), the penalty of
+    UNMIXING_RIDGES whose held-out un-mixed weights have the least squared error there, at the
+    band's median turn; the held-out weights un-mixed by them; and each band's squared error by
+    penalty (read, weights, turns: lists by take of held_out_weights' reads, the truth and the
+    turns from the calibrated pose (T,), deg)."""
+    unmixed = held_out_unmixing(read, weights, {ridge: [np.full(len(r), ridge) for r in read]
+                                                for ridge in UNMIXING_RIDGES})
+    angle, truth = np.concatenate(turns), np.vstack(weights)
+    band = np.searchsorted(UNMIXING_TURN_EDGES, angle)
+    errors, knots, ridges = {}, [], []
+    for b in range(len(UNMIXING_TURN_EDGES) + 1):
+        inside = band == b
+        errors[b] = {ridge: float(np.mean((np.vstack(taken)[inside] - truth[inside]) ** 2))
+                     for ridge, taken in unmixed.items()}
+        knots.append(float(np.median(angle[inside])))
+        ridges.append(min(errors[b], key=errors[b].get))
+    by_turn = held_out_unmixing(read, weights, {
+        "by turn": [np.interp(a, knots, ridges) for a in turns]})["by turn"]
+    return (tuple(knots), tuple(ridges)), by_turn, unmixed, errors
 
 
 def turn_errors(turns, true_turns):
@@ -271,8 +302,8 @@ def held_out_share(paths, truths, changes, points, weights, keys, names, motion,
     heads, and each share's score (lists by take: frame paths, true weights (T, E), and the
     calibrated frames' readings, points' weights, the map's keys' weights and their held-out
     reads (held_out_weights'); keys: the map's; choice: the map's components, ridge and
-    un-mixing ridge)."""
-    components, ridge, unmixing_ridge = choice
+    un-mixing's penalties by turn)."""
+    components, ridge, (unmixing_turns, unmixing_ridges) = choice
     library = load_library()
     locations = read_tracker_locations()
     learnt, left = _folds(len(paths), 0)
@@ -280,8 +311,9 @@ def held_out_share(paths, truths, changes, points, weights, keys, names, motion,
         np.vstack([changes[k] for k in learnt]), np.vstack([points[k] for k in learnt]),
         np.vstack([weights[k] for k in learnt]), [names[j] for j in keys], motion[keys],
         components, ridge)
-    learned = replace(learned, unmixing_ridge=unmixing_ridge, response=appearance.learn_response(
-        [read[k] for k in learnt], [weights[k] for k in learnt]))
+    learned = replace(learned, unmixing_turns=unmixing_turns, unmixing_ridges=unmixing_ridges,
+                      response=appearance.learn_response([read[k] for k in learnt],
+                                                         [weights[k] for k in learnt]))
     tracked = {share: [] for share in SHARES}
     for k in left:
         head = identity_vertices(library, TRAINING_IDENTITIES[k], identities_file)
@@ -317,12 +349,12 @@ def main():
     solver = appearance.points_solver([names[j] for j in keys], motion[keys])
     tracked = [read_take(paths, solver) for paths in takes]
     recipes = [take_recipe(identity, names) for identity in TRAINING_IDENTITIES]
-    seen = [np.all(np.isfinite(readings), axis=1) for readings, _, _, _ in tracked]
-    changes = [readings[ok] for (readings, _, _, _), ok in zip(tracked, seen)]
-    points = [read[ok] for (_, read, _, _), ok in zip(tracked, seen)]
+    seen = [np.all(np.isfinite(readings), axis=1) for readings, *_ in tracked]
+    changes = [readings[ok] for (readings, *_), ok in zip(tracked, seen)]
+    points = [read[ok] for (_, read, *_), ok in zip(tracked, seen)]
     weights = [recipe[0][ok][:, keys] for recipe, ok in zip(recipes, seen)]
     errors = [turn_errors(turns[ok], recipe[1][ok])
-              for (_, _, _, turns), recipe, ok in zip(tracked, recipes, seen)]
+              for (_, _, _, turns, _), recipe, ok in zip(tracked, recipes, seen)]
     read = held_out_weights(changes, points, weights,
                             [(components, ridge) for components in COMPONENTS for ridge in RIDGES])
     scores = held_out_scores(read, weights)
@@ -330,20 +362,25 @@ def main():
     print("make_appearance_model: held-out correlation by components and ridge: " +
           ", ".join(f"{c} / {r}: {score:.3f}" for (c, r), score in scores.items()), flush=True)
     raw = read[components, ridge]
-    unmixed = held_out_unmixing(raw, weights)
-    unmixing_errors = held_out_squared_errors(unmixed, weights)
-    unmixing_ridge = min(unmixing_errors, key=unmixing_errors.get)
-    unmixing_scores = held_out_scores(unmixed, weights)
+    from_neutral = [angles[ok] for (*_, angles), ok in zip(tracked, seen)]
+    unmixing, by_turn, unmixed, band_errors = held_out_unmixing_by_turn(raw, weights,
+                                                                        from_neutral)
+    unmixing_errors = held_out_squared_errors({**unmixed, "by turn": by_turn}, weights)
+    unmixing_scores = held_out_scores({**unmixed, "by turn": by_turn}, weights)
     print("make_appearance_model: held-out squared error (correlation) un-mixed by the penalty: "
           f"read {held_out_squared_errors({0: raw}, weights)[0]:.5f}, " +
           ", ".join(f"{r}: {unmixing_errors[r]:.5f} ({unmixing_scores[r]:.3f})"
-                    for r in UNMIXING_RIDGES), flush=True)
-    turn_ridge, turn_scores = held_out_turn_ridge(unmixed[unmixing_ridge], errors)
+                    for r in (*UNMIXING_RIDGES, "by turn")), flush=True)
+    for b, errors_by_ridge in band_errors.items():
+        print(f"make_appearance_model: turn band {b} (median {unmixing[0][b]:.1f} deg): held-out "
+              "squared error by the penalty: " +
+              ", ".join(f"{r}: {e:.5f}" for r, e in errors_by_ridge.items()), flush=True)
+    turn_ridge, turn_scores = held_out_turn_ridge(by_turn, errors)
     print("make_appearance_model: held-out median turn error (deg) by the turn bias's ridge: " +
           ", ".join(f"{r}: {score:.3f}" for r, score in turn_scores.items()), flush=True)
     truths = [recipe[0] for recipe in recipes]
     share, share_scores = held_out_share(takes, truths, changes, points, weights, keys, names,
-                                         motion, (components, ridge, unmixing_ridge), raw,
+                                         motion, (components, ridge, unmixing), raw,
                                          args.identities)
     print("make_appearance_model: held-out correlation by the appearance's share: " +
           ", ".join(f"{s}: {score:.3f}" for s, score in share_scores.items()), flush=True)
@@ -351,13 +388,14 @@ def main():
                                               np.vstack(weights), [names[j] for j in keys],
                                               motion[keys], components, ridge)
     # the response and the turn's bias from what maps read of frames they were not learnt from
-    turn_bias = appearance.learn_turn_bias(unmixed[unmixing_ridge], errors, turn_ridge)
+    turn_bias = appearance.learn_turn_bias(by_turn, errors, turn_ridge)
     appearance.write_appearance_map(replace(
         learned, share=share, turn_bias=turn_bias, response=appearance.learn_response(raw, weights),
-        unmixing_ridge=unmixing_ridge))
+        unmixing_turns=unmixing[0], unmixing_ridges=unmixing[1]))
     print(f"make_appearance_model: learnt from {sum(map(len, changes))} frames of "
           f"{len(TRAINING_IDENTITIES)} takes ({components} components, ridge {ridge}, un-mixing "
-          f"ridge {unmixing_ridge}, share {share}, turn ridge {turn_ridge}); wrote "
+          f"ridges {unmixing[1]} at turns {tuple(round(t, 1) for t in unmixing[0])} deg, share "
+          f"{share}, turn ridge {turn_ridge}); wrote "
           f"{APPEARANCE_MAP_FILE}")
 
 

@@ -82,16 +82,18 @@ def test_gaze_follows_the_eyes(tracked_eyes):
 
 
 # Measured facing the camera: the keys the eyes do not read (the take moves only the eyes and
-# lids) reach 0.17 (browInnerUp_R, between blinks; cheekSquint_L 0.15 in a blink); with the head
-# turning 0.27 (cheekRaiser_R, in a blink): the appearance map reads the closing lids' edges a
-# little as a cheek's raise (with its 1,500 components: 0.18 (cheekRaiser_R) in a blink, 0.29
-# turning). Before the map read the face's edges: 0.14 (cheekSquint_R) in the
-# blinks, 0.07 between them, turning 0.20 (browInnerUp_R) (0.17, cheekRaiser_R, and
+# lids) reach 0.20 (cheekSquint_L in a blink; browInnerUp_R 0.20 between blinks); with the head
+# turning 0.31 (cheekRaiser_R, in a blink): the appearance map reads the closing lids' edges a
+# little as a cheek's raise, and its un-mixing penalty is smaller near the calibrated pose than
+# it was (0.05-0.1 below 16 deg; with one penalty, 0.1, at every turn: 0.17, browInnerUp_R, and
+# 0.27; with its 1,500 components: 0.18 (cheekRaiser_R) in a blink, 0.29 turning). Before the
+# map read the face's edges: 0.14 (cheekSquint_R) in the blinks, 0.07 between them, turning
+# 0.20 (browInnerUp_R) (0.17, cheekRaiser_R, and
 # 0.09 before the appearance map's reading was un-mixed; 0.38 with the un-mixing's penalty at
 # 0.03, not chosen; 0.24 and 0.19, the brows, before the map). Before those keys were solved
 # from the landmarks alone, the eye keys' motion not taken off them (core.session): 0.66
 # (browOuterUp_R), 0.88 (browDown_L). Checked with a margin.
-MEASURED_OTHER_KEYS = {"facing": 0.20, "turning": 0.30}
+MEASURED_OTHER_KEYS = {"facing": 0.22, "turning": 0.33}
 
 
 def test_blinks_and_gaze_move_no_other_key_as_measured(tracked_eyes):

@@ -24,12 +24,15 @@ OTHER_IDENTITY = 7
 
 # Measured with the face's appearance read beside the points (core.appearance, the map learnt
 # from 96 takes of other ICT identities, scripts/make_appearance_model.py, reading the face's
-# shading and edges and the points' weights, un-mixed by its learnt response; the keys it reads
-# by name take its weight at its share 1.0; mean correlation over the 17 driven shapes, their
-# mean absolute error): bundled head 0.963, 0.021; identity 7: 0.937, 0.026; the head still:
-# 0.967, 0.017 (the lowest shapes: mouthFrown_R 0.86, mouthStretch_R 0.71 (identity 7),
-# mouthFrown_L 0.85 (still)). With the map's 1,500 components (2,500 now): 0.948, 0.024; 0.928,
-# 0.027; 0.959, 0.019 (mouthFrown_R 0.81, mouthStretch_R 0.697, mouthFrown_L 0.85). Before the
+# shading and edges and the points' weights, un-mixed by its learnt response with a penalty that
+# grows with the head's turn from its calibrated pose; the keys it reads by name take its weight
+# at its share 1.0; mean correlation over the 17 driven shapes, their mean absolute error):
+# bundled head 0.952, 0.025; identity 7: 0.928, 0.028; the head still: 0.975, 0.014 (the lowest
+# shapes: mouthFrown_R 0.81, mouthFrown_R 0.73 (identity 7), mouthFrown_L 0.88 (still)). With
+# one penalty (0.1) at every turn: 0.963, 0.021; 0.937, 0.026; 0.967, 0.017 (mouthFrown_R 0.86,
+# mouthStretch_R 0.71, mouthFrown_L 0.85). With the map's 1,500 components (2,500 now): 0.948,
+# 0.024; 0.928, 0.027; 0.959, 0.019 (mouthFrown_R 0.81, mouthStretch_R 0.697, mouthFrown_L
+# 0.85). Before the
 # map read the face's edges (its shading alone, share
 # 0.875): 0.902, 0.031; 0.916, 0.032; 0.928, 0.026 (the frowns the lowest: 0.70 / 0.39, 0.66 /
 # 0.73, 0.63 / 0.52; every other shape at least 0.77).
@@ -58,22 +61,24 @@ OTHER_IDENTITY = 7
 # 0.526, 0.061; 0.634, 0.046; the eyes' rows join the solve). (FaceMesh's points alone:
 # 0.325, 0.056; 0.365, 0.059; 0.517, 0.046. With the model of the located points the learnt one
 # replaced: 0.320, 0.067; 0.343, 0.067.)
-MEASURED_WEIGHTS = {"moving": (0.94, 0.024), "other_identity": (0.92, 0.029),
-                    "still": (0.95, 0.020)}
+MEASURED_WEIGHTS = {"moving": (0.93, 0.028), "other_identity": (0.91, 0.031),
+                    "still": (0.96, 0.017)}
 # The moving take with the appearance not read (the points and the eyes alone), as above: 0.654.
 MEASURED_WITHOUT_APPEARANCE = 0.63
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll), the fit's
 # learnt rotation bias taken out (core.tracker_model.learn_pose_bias) and then the appearance
-# map's (the turn's error its un-mixed weights make: AppearanceMap.unbiased_turn): moving 1.26,
-# 2.63, (0.99, 1.01, 1.00); turning 1.18, 2.83, (1.00, 1.00, 1.02); identity 7: 1.45, 3.28, (1.04,
-# 1.02, 1.02); the head still 0.57, 1.91 (with the map's 1,500 components: 1.26, 2.59; 1.17, 2.86;
+# map's (the turn's error its un-mixed weights make: AppearanceMap.unbiased_turn): moving 1.23,
+# 2.61, (0.99, 1.00, 1.00); turning 1.16, 2.84, (1.00, 1.00, 1.02); identity 7: 1.45, 3.30, (1.04,
+# 1.02, 1.02); the head still 0.56, 1.85 (with one un-mixing penalty at every turn: 1.26, 2.63;
+# 1.18, 2.83; 1.45, 3.28; 0.57, 1.91; with the map's 1,500 components: 1.26, 2.59; 1.17, 2.86;
 # 1.44, 3.28; 0.59, 2.05; with the map reading the shading alone: 1.22, 2.61; 1.14,
 # 2.91; 1.48, 3.34, pitch 1.05; 0.57, 2.04; before the un-mixing: 1.28, 2.77; 1.16, 2.84; 1.54,
 # 3.55; 0.57, 1.78). (Without the map's: 1.32, 2.86; 1.16, 2.80; 1.60, 3.64, pitch 1.06; 0.61, 1.92.
 # Without either: 1.45, 2.56; 1.42, 2.97; 1.55, 3.58; 0.69,
 # 1.92. Turns not checked here, the biases learnt without them: ICT identities 11, 23, 31 and 42
-# 1.84 / 3.34, 1.24 / 3.11, 1.55 / 3.24, 1.59 / 3.42 (identity 11's pitch at 0.90 of its size;
-# with 1,500 components 1.83 / 3.32, 1.24 / 3.03, 1.52 / 3.22, 1.57 / 3.41); with
+# 1.79 / 3.28, 1.23 / 3.04, 1.49 / 3.20, 1.60 / 3.37 (identity 11's pitch at 0.90 of its size;
+# with one un-mixing penalty 1.84 / 3.34, 1.24 / 3.11, 1.55 / 3.24, 1.59 / 3.42; with 1,500
+# components 1.83 / 3.32, 1.24 / 3.03, 1.52 / 3.22, 1.57 / 3.41); with
 # the map reading the shading alone 1.79 / 3.29, 1.18 / 2.82, 1.41 / 3.10, 1.54 / 3.16 (identity
 # 11's pitch at 0.91; before the un-mixing 1.75 / 3.26, 1.25 / 3.02, 1.33 / 3.19, 1.58 / 3.41);
 # without the map's bias 1.75 / 3.23, 1.35 / 3.07, 1.34 / 3.19, 1.60 / 3.47; without either 1.95 /
@@ -133,16 +138,18 @@ def test_weights_follow_the_rendered_face_as_measured(take_name, request):
 
 
 # The same moving take on ICT identities no build step learns from (seeds of the identity model):
-# measured (mean correlation, MAE) 11: 0.916, 0.025; 23: 0.913, 0.029; 31: 0.915, 0.029; 42: 0.946,
-# 0.025, the lowest shapes browDown_L on 11 (0.45; 0.68 on 23 and 31) and mouthFrown_R (0.60-0.79).
-# With the map's 1,500 components: 0.894, 0.027; 0.876, 0.031; 0.903, 0.030; 0.933, 0.026,
+# measured (mean correlation, MAE) 11: 0.905, 0.027; 23: 0.893, 0.031; 31: 0.901, 0.031; 42: 0.932,
+# 0.028, the lowest shapes browDown_L on 11 (0.42; 0.56-0.60 on 23 and 31) and mouthFrown_R
+# (0.53-0.74). With one un-mixing penalty (0.1) at every turn: 0.916, 0.025; 0.913, 0.029; 0.915,
+# 0.029; 0.946, 0.025 (browDown_L 0.45 on 11). With the map's 1,500 components: 0.894, 0.027;
+# 0.876, 0.031; 0.903, 0.030; 0.933, 0.026,
 # browDown_L on 11 and 23 0.27, 0.26. Before the map read the face's edges: 0.852, 0.033; 0.808,
 # 0.039; 0.841, 0.035; 0.885, 0.033, the frowns 0.01-0.62 and browDown_L 0.44-0.77 the lowest
 # (before the un-mixing: 0.845, 0.040; 0.797, 0.048; 0.826, 0.043; 0.877, 0.040; with its penalty at
 # 0.03, not chosen: 0.887, 0.833, 0.865, 0.915; before the map read the points' weights too: 0.816,
 # 0.044; 0.787, 0.050; 0.810, 0.047; 0.858, 0.044).
-MEASURED_UNSEEN_IDENTITIES = {11: (0.89, 0.028), 23: (0.89, 0.032), 31: (0.89, 0.032),
-                              42: (0.92, 0.028)}
+MEASURED_UNSEEN_IDENTITIES = {11: (0.88, 0.030), 23: (0.87, 0.034), 31: (0.88, 0.034),
+                              42: (0.91, 0.031)}
 
 
 @pytest.mark.parametrize("identity", sorted(MEASURED_UNSEEN_IDENTITIES))
@@ -259,22 +266,22 @@ def test_a_turning_neutral_face_after_a_wide_calibration_as_measured(turning_wid
     assert value <= MEASURED_FALSE_WEIGHT_WIDE[keys], f"{name} reached {value:.2f}"
 
 
-# The keys the eyes do not read, on the turning take and after the wide calibration: 0.23
-# (mouthStretch_L) and 0.21 (mouthStretch_L) with the map's 2,500 components, at yaw 26-30 deg
-# (the cost of the map's finer reading; with 1,500: 0.19 and 0.19, mouthStretch_L, with the map
-# reading the face's edges too); 0.21
+# The keys the eyes do not read, on the turning take and after the wide calibration: 0.13
+# (mouthStretch_L) and 0.12 (mouthStretch_L), the target, with the map's un-mixing penalty
+# growing with the head's turn from its calibrated pose (0.05 at 6.5 deg to 0.3 at 31 deg); 0.23
+# and 0.21 (mouthStretch_L, at yaw 26-30 deg) with one penalty (0.1) and the map's 2,500
+# components (the cost of the map's finer reading; with 1,500: 0.19 and 0.19, mouthStretch_L, with
+# the map reading the face's edges too); 0.21
 # (browDown_R) and 0.20 (browDown_R) with the map's reading un-mixed (0.22 and 0.21 before it;
 # 0.35 and 0.34 with the un-mixing's penalty at 0.03, which scales a misread up as it does an
 # expression); 0.20 and 0.18 before the map read the points' weights; 0.21,
 # mouthPress_L, and 0.20, mouthPress_R, with every key following its motion); 0.49
 # (jawRight) and 0.54 (mouthStretch_R) without it.
-MEASURED_FALSE_WEIGHT_NOT_EYES = 0.25
-
-
 @pytest.mark.parametrize("take_name", ["turning", "turning_wide"])
-def test_a_turning_neutral_face_moves_the_keys_the_eyes_do_not_read_little(take_name, request):
+def test_a_turning_neutral_face_moves_the_keys_the_eyes_do_not_read_within_the_target(take_name,
+                                                                                       request):
     value, name = largest_false_weight(*request.getfixturevalue(take_name), but="eye")
-    assert value <= MEASURED_FALSE_WEIGHT_NOT_EYES, f"{name} reached {value:.2f}"
+    assert value <= 0.15, f"{name} reached {value:.2f}"
 
 
 @pytest.mark.xfail(strict=True, reason="measured: a neutral face turning up to 30 deg reaches "
@@ -282,7 +289,7 @@ def test_a_turning_neutral_face_moves_the_keys_the_eyes_do_not_read_little(take_
                                        "moves 0.053 eye widths per unit of the turn's "
                                        "direction, a slide of this head's own: the training "
                                        "heads' slopes spread by 0.07; the keys the eyes do "
-                                       "not read 0.23, mouthStretch_L; FaceMesh's fit alone 0.55, "
+                                       "not read 0.13, mouthStretch_L; FaceMesh's fit alone 0.55, "
                                        "browDown_L). With the true points' "
                                        "projections 0.04: FaceMesh's points slide as the head "
                                        "turns, and the learnt slide leaves 1.4 px median (a slide "
@@ -293,7 +300,8 @@ def test_a_turning_neutral_face_makes_no_expression(turning):
 
 
 def test_head_rotation_reaches_the_target(moving):
-    """Measured: median 1.26 deg, max 2.59 deg, every axis within 0.01 of its scale (1.22, 2.61 with
+    """Measured: median 1.23 deg, max 2.61 deg, every axis within 0.01 of its scale (1.26, 2.59 with
+    one un-mixing penalty at every turn; 1.22, 2.61 with
     the map reading the shading alone; before the map's reading was un-mixed 1.28, 2.77; without the
     appearance map's turn bias 1.32, 2.86; without the tracker model's learnt rotation bias
     either 1.45, 2.56; before the fit saw the modes as FaceMesh does and with the
@@ -303,8 +311,9 @@ def test_head_rotation_reaches_the_target(moving):
     assert np.all(np.abs(slopes - 1) <= 0.05), slopes
 
 
-@pytest.mark.xfail(strict=True, reason="measured: median 1.45 deg, max 3.28 deg, pitch at 1.04 of "
-                                       "its scale (1.48, 3.34 with the map reading the shading "
+@pytest.mark.xfail(strict=True, reason="measured: median 1.45 deg, max 3.30 deg, pitch at 1.04 of "
+                                       "its scale (1.45, 3.28 with one un-mixing penalty at "
+                                       "every turn; 1.48, 3.34 with the map reading the shading "
                                        "alone; 1.60, 3.64, 1.06 before the appearance map's "
                                        "turn bias; 1.54, 3.55 before its reading was un-mixed): "
                                        "the largest errors are a sneer's (frames 166-174, the "

@@ -2,8 +2,8 @@
 made by a known affine map comes back onto the frontal grid exactly, a brighter light reads the
 same, a map learnt from readings that are linear in known weights gives those weights back, a
 turn bias learnt from errors linear in known weights takes those errors off, a map's response
-learnt from reads that mix known weights un-mixes them, and the shipped map's file is checked
-as the tracker model's is.
+learnt from reads that mix known weights un-mixes them (with a penalty that follows the head's
+turn from the camera), and the shipped map's file is checked as the tracker model's is.
 """
 from dataclasses import replace
 
@@ -16,7 +16,8 @@ from exclone_addon.core.appearance import (FEATURES, FRONTAL_SIZE, GRADIENT_BINS
                                            SHADING_FEATURES, FaceFrontaliser,
                                            learn_appearance_map, learn_response,
                                            learn_turn_bias, read_appearance_map,
-                                           unmixed_weights, write_appearance_map)
+                                           turn_between, unmixed_weights,
+                                           write_appearance_map)
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import load_tracker_model
@@ -85,12 +86,12 @@ def test_a_map_learnt_from_linear_readings_gives_the_weights_back():
     learned = learn_appearance_map(changes, points, weights, [f"key{j}" for j in range(keys)],
                                    motion, components=40, ridge=1e-6)
     held_out = rng.uniform(0, 1, (50, keys))
-    read = np.array([learned.weights(change, np.tensordot(0.3 * w, motion, axes=1))
+    read = np.array([learned.weights(change, np.tensordot(0.3 * w, motion, axes=1), 0.0)
                      for change, w in zip(held_out @ effects, held_out)])
     np.testing.assert_allclose(read, held_out, atol=0.01)
     np.testing.assert_allclose(learned.motion_of(read[0]),
                                np.tensordot(held_out[0], motion, axes=1), atol=0.05)
-    assert learned.weights_read(-3 * effects.sum(axis=0), np.zeros(keys)).max() == 0.0
+    assert learned.weights_read(-3 * effects.sum(axis=0), np.zeros(keys), 0.0).max() == 0.0
 
 
 def test_a_turn_bias_learnt_from_errors_linear_in_the_weights_takes_them_off():
@@ -143,6 +144,31 @@ def test_a_response_learnt_from_mixed_reads_unmixes_them():
     assert unmixed_weights(3 * read, response, 0.0).max() <= 1.0
 
 
+def test_the_unmixing_penalty_follows_the_head_turn_from_its_calibrated_pose_not_its_roll():
+    """The turn is the angle between the face's front in the calibrated pose and now, whatever
+    the head's roll about the front; the un-mixing's penalty is the map's at each knot's turn,
+    linear between them and held beyond them, and a larger one shrinks the same read's
+    weights."""
+    neutral = Rotation.from_euler("yx", [5, -12], degrees=True) * Rotation.from_matrix(
+        np.diag([1.0, -1.0, -1.0]))
+    assert turn_between(neutral, neutral) == pytest.approx(0.0, abs=1e-6)
+    for axes, angles, turn in (("y", 30, 30), ("x", -20, 20), ("z", 45, 0), ("zy", (40, 25), 25)):
+        # turned about the head's own axes: z is its front
+        turned = neutral * Rotation.from_euler(axes, angles, degrees=True)
+        assert turn_between(neutral, turned) == pytest.approx(turn, abs=1e-6)
+    rng = np.random.default_rng(3)
+    learned = replace(learn_appearance_map(np.eye(2, FEATURES), np.eye(2), np.eye(2), [
+        "jawOpen", "mouthPucker"], np.zeros((2, 468, 3)), components=2, ridge=1.0),
+        response=np.vstack((np.diag([0.3, 0.2]), [0.01, 0.02])) + 0.02 * rng.uniform(size=(3, 2)),
+        unmixing_turns=(10.0, 30.0), unmixing_ridges=(0.1, 0.5))
+    assert [learned.unmixing_ridge(t) for t in (0.0, 10.0, 20.0, 30.0, 50.0)] == pytest.approx(
+        [0.1, 0.1, 0.3, 0.5, 0.5])
+    read = np.array([0.2, 0.12])
+    facing, turned = learned.unmixed(read, 0.0), learned.unmixed(read, 40.0)
+    np.testing.assert_allclose(facing, unmixed_weights(read, learned.response, 0.1))
+    assert np.all(turned < facing) and facing.min() > 0.1
+
+
 def test_keys_are_read_by_name_or_by_their_halves():
     learned = learn_appearance_map(np.eye(4, FEATURES), np.eye(4, 3), np.eye(4, 3), [
         "jawOpen", "cheekPuff_L", "cheekPuff_R"], np.zeros((3, 468, 3)), components=2, ridge=1.0)
@@ -161,16 +187,17 @@ def test_the_map_file_round_trips_and_a_missing_or_old_one_says_what_to_run(tmp_
     # a map without a response writes one that changes nothing
     write_appearance_map(learned, path)
     change, points = rng.normal(size=FEATURES), rng.uniform(size=2)
-    np.testing.assert_allclose(read_appearance_map(path).weights_read(change, points),
-                               learned.weights_read(change, points), atol=1e-5)
-    learned = replace(learned, response=rng.uniform(size=(3, 2)), unmixing_ridge=0.03)
+    np.testing.assert_allclose(read_appearance_map(path).weights_read(change, points, 10.0),
+                               learned.weights_read(change, points, 10.0), atol=1e-5)
+    learned = replace(learned, response=rng.uniform(size=(3, 2)), unmixing_turns=(5.0, 25.0),
+                      unmixing_ridges=(0.03, 0.3))
     write_appearance_map(learned, path)
     read = read_appearance_map(path)
     assert read.names == ("jawOpen", "mouthPucker")
     np.testing.assert_allclose(read.coefficients, learned.coefficients, rtol=1e-5, atol=1e-7)
     np.testing.assert_allclose(read.turn_bias, learned.turn_bias, rtol=1e-6)
     np.testing.assert_allclose(read.response, learned.response, rtol=1e-6)
-    assert read.unmixing_ridge == 0.03
+    assert read.unmixing_turns == (5.0, 25.0) and read.unmixing_ridges == (0.03, 0.3)
     with pytest.raises(ExCloneError, match="make_appearance_model"):
         read_appearance_map(tmp_path / "missing.npz")
     with np.load(path) as stored:
@@ -195,4 +222,4 @@ def test_the_shipped_map_reads_the_library_keys_the_eyes_do_not_as_the_tracker_m
     assert shipped.response.shape == (len(shipped.names) + 1, len(shipped.names))
     # every key raises its own reading
     assert np.all(np.diag(shipped.response) > 0)
-    assert shipped.unmixing_ridge > 0.0
+    assert np.all(np.diff(shipped.unmixing_turns) > 0) and min(shipped.unmixing_ridges) > 0.0

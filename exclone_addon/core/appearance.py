@@ -21,7 +21,11 @@ some of the others' into it (on frames it was not learnt from, a frown at 0.15-0
 weight, the mouth's stretch and an open jaw at about a third of that). That response is learnt
 too (learn_response: what the map reads per unit of each key, on frames of takes it was not
 learnt from), and the weights shown are the ones in [0, 1] whose response best explains what
-the map read: a bounded least squares, with a penalty on the weights (unmixed_weights).
+the map read: a bounded least squares, with a penalty on the weights (unmixed_weights). The
+penalty grows with the head's turn from the pose it was calibrated in
+(AppearanceMap.unmixing_ridge): the further the face turns from there, the further a neutral
+face's reading strays from its calibrated one, and a larger penalty keeps that stray reading
+from being un-mixed into keys.
 
 The same keys' weights say how the fit misreads the head's turn: FaceMesh's points move with a
 sneer or a pucker in ways the shape model partly explains as a pitch or a yaw. What remains of
@@ -64,8 +68,8 @@ FEATURES = SHADING_FEATURES + GRADIENT_FEATURES
 # The grid's median brightness before its edges are read (8-bit, as HOG takes them).
 GRADIENT_BRIGHTNESS = 100.0
 # 2: the turn's bias (turn_bias); 3: the points' weights read too; 4: the map's response;
-# 5: the edges read beside the shading
-MAP_VERSION = 5
+# 5: the edges read beside the shading; 6: the un-mixing's penalty by the head's turn
+MAP_VERSION = 6
 REMEDY = "run scripts/make_appearance_model.py"
 # learn_response's penalty per frame: only keeps a key the frames never move determined
 RESPONSE_RIDGE = 1e-4
@@ -119,6 +123,14 @@ class FaceFrontaliser:
         return reading
 
 
+def turn_between(neutral, rotation):
+    """The angle (deg) between the face's front in two head poses (model -> camera), the
+    actor's calibrated `neutral` and `rotation`; a roll about the front does not count."""
+    front = np.array([0.0, 0.0, 1.0])
+    cosine = rotation.apply(front) @ neutral.apply(front)
+    return float(np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0))))
+
+
 def points_solver(names, motion):
     """What the map reads beside the face's image: its keys' weights (K,) from the points'
     displacement from the neutral (n, 3), the bounded solve (WeightSolver.solve) against the
@@ -144,21 +156,25 @@ class AppearanceMap:
     # (K + 1, K) what the map reads per unit of each key's weight, then with no key (the last
     # row; learn_response); None: the map's reading is the weights
     response: np.ndarray = None
-    # the penalty on the weights' squares when the reading is un-mixed (unmixed_weights)
-    unmixing_ridge: float = 0.0
+    # the penalty on the weights' squares when the reading is un-mixed (unmixed_weights): at
+    # each turn from the calibrated pose of unmixing_turns (deg, rising; turn_between),
+    # unmixing_ridges, and linear between them
+    unmixing_turns: tuple = (0.0,)
+    unmixing_ridges: tuple = (0.0,)
 
     @cached_property
     def _points_solver(self):
         return points_solver(self.names, self.motion)
 
-    def weights(self, change, displacement):
+    def weights(self, change, displacement, turn):
         """(K,) the keys' weights for a reading's change from the actor's neutral (FEATURES,)
-        and the points' displacement from it (n, 3) in the same frame."""
-        return self.weights_read(change, self._points_solver.solve(displacement))
+        and the points' displacement from it (n, 3) in the same frame, the head turned `turn`
+        deg from its calibrated pose (turn_between)."""
+        return self.weights_read(change, self._points_solver.solve(displacement), turn)
 
-    def weights_read(self, change, points_weights):
+    def weights_read(self, change, points_weights, turn):
         """weights() from the points' weights (K,) as points_solver gives them."""
-        return self.unmixed(self.reading(change, points_weights))
+        return self.unmixed(self.reading(change, points_weights), turn)
 
     def reading(self, change, points_weights):
         """(K,) what the map reads (before un-mixing) of a reading's change and the points'
@@ -166,12 +182,17 @@ class AppearanceMap:
         features = np.concatenate((change, points_weights))
         return np.clip(features @ self.coefficients + self.intercept, 0.0, 1.0)
 
-    def unmixed(self, read):
+    def unmixing_ridge(self, turn):
+        """The un-mixing's penalty with the head turned `turn` deg from its calibrated pose."""
+        return float(np.interp(turn, self.unmixing_turns, self.unmixing_ridges))
+
+    def unmixed(self, read, turn):
         """(K,) the weights in [0, 1] whose response best explains what the map read (K,),
-        less unmixing_ridge times their squares; `read` itself without a response."""
+        less the penalty at the head's `turn` (deg) times their squares; `read` itself without
+        a response."""
         if self.response is None:
             return read
-        return unmixed_weights(read, self.response, self.unmixing_ridge)
+        return unmixed_weights(read, self.response, self.unmixing_ridge(turn))
 
     def unbiased_turn(self, rotation, weights):
         """The head's turn (model -> camera) tracked as `rotation` while the keys' weights (K,)
@@ -275,7 +296,8 @@ def write_appearance_map(learned, path=data.APPEARANCE_MAP_FILE):
                                    else learned.turn_bias).astype(np.float32),
                         response=(_no_response(len(learned.names)) if learned.response is None
                                   else learned.response).astype(np.float32),
-                        unmixing_ridge=np.float64(learned.unmixing_ridge))
+                        unmixing_turns=np.asarray(learned.unmixing_turns, np.float64),
+                        unmixing_ridges=np.asarray(learned.unmixing_ridges, np.float64))
 
 
 def _no_response(keys):
@@ -290,7 +312,9 @@ def read_appearance_map(path=data.APPEARANCE_MAP_FILE):
                          stored["intercept"].astype(np.float64),
                          stored["motion"].astype(np.float64), float(stored["share"]),
                          stored["turn_bias"].astype(np.float64),
-                         stored["response"].astype(np.float64), float(stored["unmixing_ridge"]))
+                         stored["response"].astype(np.float64),
+                         tuple(float(t) for t in stored["unmixing_turns"]),
+                         tuple(float(r) for r in stored["unmixing_ridges"]))
 
 
 @lru_cache(maxsize=1)

@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import data, eyes, face_models, threads
-from .appearance import FaceFrontaliser, load_appearance_map
+from .appearance import FaceFrontaliser, load_appearance_map, turn_between
 from .eyes import EyeGeometry
 from .errors import ExCloneError
 from .material_points import MaterialPoints
@@ -503,7 +503,9 @@ class FaceTrackingSession:
                 gray, self._posed_neutral(pose.rotation, pose.translation)) - self._neutral_reading
             if self._appearance_map is not None:
                 read = self._appearance_map.weights(self.expression_reading,
-                                                    self.expression_displacement)
+                                                    self.expression_displacement,
+                                                    turn_between(self.neutral_rotation,
+                                                                 pose.rotation))
                 # the turn less what the expression made the fit read into it
                 pose = replace(pose, rotation=self._appearance_map.unbiased_turn(pose.rotation,
                                                                                  read))
