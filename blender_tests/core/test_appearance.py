@@ -3,7 +3,7 @@ made by a known affine map comes back onto the frontal grid exactly, a brighter 
 same, a map learnt from readings that are linear in known weights gives those weights back, a
 turn bias learnt from errors linear in known weights takes those errors off, a map's response
 learnt from reads that mix known weights un-mixes them (with a penalty that follows the head's
-turn from the camera), and the shipped map's file is checked as the tracker model's is.
+turn from its calibrated pose), and the shipped map's file is checked as the tracker model's is.
 """
 from dataclasses import replace
 
