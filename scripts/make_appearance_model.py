@@ -239,11 +239,12 @@ def held_out_unmixing(read, weights, ridges_by_frame):
     return unmixed
 
 
-def held_out_squared_errors(read, weights):
+def held_out_squared_errors(read, weights, frames=slice(None)):
     """Per choice, the mean squared error against the truth (weights, by take) of held-out
-    weights `read` (by choice, lists by take)."""
-    truth = np.vstack(weights)
-    return {choice: float(np.mean((np.vstack(taken) - truth) ** 2))
+    weights `read` (by choice, lists by take) over `frames` (an index into the takes' frames
+    stacked; all of them by default)."""
+    truth = np.vstack(weights)[frames]
+    return {choice: float(np.mean((np.vstack(taken)[frames] - truth) ** 2))
             for choice, taken in read.items()}
 
 
@@ -256,13 +257,12 @@ def held_out_unmixing_by_turn(read, weights, turns):
     turns from the calibrated pose (T,), deg)."""
     unmixed = held_out_unmixing(read, weights, {ridge: [np.full(len(r), ridge) for r in read]
                                                 for ridge in UNMIXING_RIDGES})
-    angle, truth = np.concatenate(turns), np.vstack(weights)
+    angle = np.concatenate(turns)
     band = np.searchsorted(UNMIXING_TURN_EDGES, angle)
     errors, knots, ridges = {}, [], []
     for b in range(len(UNMIXING_TURN_EDGES) + 1):
         inside = band == b
-        errors[b] = {ridge: float(np.mean((np.vstack(taken)[inside] - truth[inside]) ** 2))
-                     for ridge, taken in unmixed.items()}
+        errors[b] = held_out_squared_errors(unmixed, weights, inside)
         knots.append(float(np.median(angle[inside])))
         ridges.append(min(errors[b], key=errors[b].get))
     by_turn = held_out_unmixing(read, weights, {

@@ -21,6 +21,7 @@ from exclone_addon.core.appearance import (FEATURES, FRONTAL_SIZE, GRADIENT_BINS
 from exclone_addon.core.errors import ExCloneError
 from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import load_tracker_model
+from exclone_addon.core.tracking import FRONTAL
 
 
 # The ramp's value at grid point (x, y): RAMP_LEVEL + RAMP_SLOPE @ (x, y).
@@ -149,8 +150,7 @@ def test_the_unmixing_penalty_follows_the_head_turn_from_its_calibrated_pose_not
     the head's roll about the front; the un-mixing's penalty is the map's at each knot's turn,
     linear between them and held beyond them, and a larger one shrinks the same read's
     weights."""
-    neutral = Rotation.from_euler("yx", [5, -12], degrees=True) * Rotation.from_matrix(
-        np.diag([1.0, -1.0, -1.0]))
+    neutral = Rotation.from_euler("yx", [5, -12], degrees=True) * FRONTAL
     assert turn_between(neutral, neutral) == pytest.approx(0.0, abs=1e-6)
     for axes, angles, turn in (("y", 30, 30), ("x", -20, 20), ("z", 45, 0), ("zy", (40, 25), 25)):
         # turned about the head's own axes: z is its front
