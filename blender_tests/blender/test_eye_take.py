@@ -1,28 +1,35 @@
-"""Blinks and gaze through the image models: the bundled ICT head rendered in background Blender
-blinking (150 ms blinks among them) and looking about with known eye turns up to 20 degrees,
-facing the camera and turning (up to 25 degrees of yaw; blender_tests/helpers/eye_takes.py),
-tracked by FaceTrackingSession.step as a camera's frames are, onto the same head (so the ideal
-answer is the truth)."""
+"""Blinks and gaze through the image models: an ICT-topology head (the bundled one and an ICT
+identity) rendered in background Blender blinking (150 ms blinks among them) and looking about
+with known eye turns up to 20 degrees, facing the camera and turning (up to 25 degrees of yaw;
+blender_tests/helpers/eye_takes.py), tracked by FaceTrackingSession.step as a camera's frames
+are, onto the same head (so the ideal answer is the truth)."""
 import cv2
 import numpy as np
 import pytest
 
-from exclone_addon.core.library import load_library
 from exclone_addon.core.retarget import AvatarRig
 from exclone_addon.core.session import FaceTrackingSession
 from exclone_addon.core.tracker_model import read_tracker_locations
 from blender_tests.helpers.eye_takes import BLINKS, CALIBRATION_FRAMES, FPS, rendered_eye_take
+from blender_tests.helpers.takes import OTHER_IDENTITY
+
+# Each take by the name its measured figures are kept under: (turning, identity).
+TAKES = {"facing": (False, None), "turning": (True, None),
+         "facing_other_identity": (False, OTHER_IDENTITY),
+         "turning_other_identity": (True, OTHER_IDENTITY)}
 
 
-@pytest.fixture(scope="module", params=["facing", "turning"])
+@pytest.fixture(scope="module", params=sorted(TAKES))
 def tracked_eyes(request):
-    take = rendered_eye_take(turning=request.param == "turning")
-    library = load_library()
-    avatar = AvatarRig.from_locations(library.mesh.vertices, library.deltas, library.names,
+    turning, identity = TAKES[request.param]
+    if identity is not None:
+        request.getfixturevalue("shared_data")     # skips where the identity model is absent
+    take = rendered_eye_take(turning=turning, identity=identity)
+    avatar = AvatarRig.from_locations(take.vertices, take.deltas, take.names,
                                       read_tracker_locations())
     session = FaceTrackingSession(avatar=avatar, camera=take.camera,
                                   calibration_frames=CALIBRATION_FRAMES)
-    weights = {name: np.full(len(take.frames), np.nan) for name in library.names}
+    weights = {name: np.full(len(take.frames), np.nan) for name in take.names}
     for k, path in enumerate(take.frames):
         result = session.step(cv2.imread(str(path)), k / FPS)
         assert result.found, f"no face in frame {k}"
@@ -32,51 +39,77 @@ def tracked_eyes(request):
     w = weights
     yaw = w["eyeLookOut_L"] + w["eyeLookIn_R"] - w["eyeLookIn_L"] - w["eyeLookOut_R"]
     pitch = w["eyeLookUp_L"] + w["eyeLookUp_R"] - w["eyeLookDown_L"] - w["eyeLookDown_R"]
-    return take, weights, yaw, pitch
+    return request.param, take, weights, yaw, pitch
 
 
 def blink_frames(start, length):
     return slice(start, start + length)
 
 
-def test_every_blink_is_found_in_both_eyes_short_ones_included(tracked_eyes):
-    take, weights, _, _ = tracked_eyes
-    for start, length in BLINKS:
-        for name in ("eyeBlink_L", "eyeBlink_R"):
-            peak = np.max(weights[name][blink_frames(start, length)])
-            assert peak > 0.5, f"the {length}-frame blink at frame {start}: {name} peaks at {peak:.2f}"
+# The weakest blink's peak (the lower eye's) in each take, measured, checked with a margin:
+# facing the camera 0.736 (bundled head) and 0.82 (identity 7), turning 0.564 and 0.41.
+MEASURED_WEAKEST_BLINK = {"facing": 0.70, "turning": 0.52, "facing_other_identity": 0.75,
+                          "turning_other_identity": 0.35}
+# The takes whose blinks fall short of the target, and why.
+BLINKS_SHORT = {
+    "turning_other_identity": "measured: two blinks read below 0.5 in the subject's right eye "
+                              "(0.49 with the head pitched 12 deg down and the eyes looking 20 "
+                              "deg down, 0.41 with the head turned 24 deg and pitched 15 deg "
+                              "down): the iris model's contour of that closed eye keeps most of "
+                              "its open height (the rendered lashes' dark line read as a narrow "
+                              "eye). On four more ICT identities turning, the weakest blink "
+                              "0.47-0.65 and the largest false blink 0.38-0.57; facing the "
+                              "camera every blink is found on all of them"}
+
+
+def _blink_peaks(weights):
+    """(blinks, 2) each blink's peak in eyeBlink_L and eyeBlink_R."""
+    return np.array([[np.max(weights[name][blink_frames(start, length)])
+                      for name in ("eyeBlink_L", "eyeBlink_R")] for start, length in BLINKS])
+
+
+def test_every_blink_is_found_in_both_eyes_short_ones_included(tracked_eyes, request):
+    name, take, weights, _, _ = tracked_eyes
+    if name in BLINKS_SHORT:
+        request.applymarker(pytest.mark.xfail(strict=True, reason=BLINKS_SHORT[name]))
+    for (start, length), peaks in zip(BLINKS, _blink_peaks(weights)):
+        assert peaks.min() > 0.5, f"the {length}-frame blink at frame {start} peaks at {peaks}"
+
+
+def test_every_blink_is_read_as_measured(tracked_eyes):
+    name, take, weights, _, _ = tracked_eyes
+    weakest = _blink_peaks(weights).min()
+    assert weakest >= MEASURED_WEAKEST_BLINK[name], f"the weakest blink peaks at {weakest:.2f}"
 
 
 def test_no_false_blink(tracked_eyes):
-    take, weights, _, _ = tracked_eyes
+    _, take, weights, _, _ = tracked_eyes
     open_eyes = take.blink == 0
     open_eyes[:CALIBRATION_FRAMES] = False
     for name in ("eyeBlink_L", "eyeBlink_R"):
         assert np.max(weights[name][open_eyes]) < 0.5
 
 
-def kind(take):
-    return "turning" if take.turning else "facing"
-
-
 # The least correlation of the gaze's yaw and pitch with the truth: the target, 0.9, facing the
-# camera (measured 0.988 and 0.974). With the head turning the pitch is short of it: measured
-# 0.962 and 0.812, checked with a margin. The pitch also reads at about half its size (0.034 per
+# camera (measured 0.988 and 0.974 on the bundled head, 0.989 and 0.980 on identity 7). With the
+# head turning the pitch is short of it: measured 0.962 and 0.812 (identity 7: 0.955 and 0.743),
+# checked with a margin. The pitch also reads at about half its size (0.034 per
 # degree of the eyes' pitch where a full eyeLook pair gives 0.067; the yaw 0.061): the iris
 # model's iris moves about half as far up and down as the geometry says, on six ICT heads
 # (0.43-0.57 of the yaw's gain). Read at its full size, the turning neutral face's false gaze
 # rises from 0.24-0.35 to 0.38-0.55 on four heads (eyeLookUp / Down) and the weakest blink here
 # falls 0.56 -> 0.49: not done.
-GAZE_CORRELATION = {"facing": (0.9, 0.9), "turning": (0.9, 0.75)}
+GAZE_CORRELATION = {"facing": (0.9, 0.9), "turning": (0.9, 0.75),
+                    "facing_other_identity": (0.9, 0.9), "turning_other_identity": (0.9, 0.7)}
 
 
 def test_gaze_follows_the_eyes(tracked_eyes):
     """The ARKit reading yaw = Out_L + In_R - In_L - Out_R (and pitch = Up - Down) against the
     true eye turn over the frames with open eyes."""
-    take, _, yaw, pitch = tracked_eyes
+    name, take, _, yaw, pitch = tracked_eyes
     frames = np.flatnonzero(take.blink == 0)
     frames = frames[frames >= CALIBRATION_FRAMES]
-    least_yaw, least_pitch = GAZE_CORRELATION[kind(take)]
+    least_yaw, least_pitch = GAZE_CORRELATION[name]
     assert np.corrcoef(yaw[frames], take.yaw[frames])[0, 1] >= least_yaw
     assert np.corrcoef(pitch[frames], take.pitch[frames])[0, 1] >= least_pitch
 
@@ -92,21 +125,23 @@ def test_gaze_follows_the_eyes(tracked_eyes):
 # 0.09 before the appearance map's reading was un-mixed; 0.38 with the un-mixing's penalty at
 # 0.03, not chosen; 0.24 and 0.19, the brows, before the map). Before those keys were solved
 # from the landmarks alone, the eye keys' motion not taken off them (core.session): 0.66
-# (browOuterUp_R), 0.88 (browDown_L). Checked with a margin.
-MEASURED_OTHER_KEYS = {"facing": 0.22, "turning": 0.33}
+# (browOuterUp_R), 0.88 (browDown_L). On identity 7: 0.24 (cheekRaiser_R) facing the camera, 0.31
+# (browOuterUp_R) turning. Checked with a margin.
+MEASURED_OTHER_KEYS = {"facing": 0.22, "turning": 0.33, "facing_other_identity": 0.27,
+                       "turning_other_identity": 0.34}
 
 
 def test_blinks_and_gaze_move_no_other_key_as_measured(tracked_eyes):
-    take, weights, _, _ = tracked_eyes
+    take_name, take, weights, _, _ = tracked_eyes
     others = {name: values[CALIBRATION_FRAMES:] for name, values in weights.items()
               if not name.startswith("eye")}
     name = max(others, key=lambda n: np.max(others[n]))
-    most = MEASURED_OTHER_KEYS[kind(take)]
+    most = MEASURED_OTHER_KEYS[take_name]
     assert np.max(others[name]) <= most, f"{name} reached {np.max(others[name]):.2f}"
 
 
 def test_a_blink_is_not_read_as_looking_down(tracked_eyes):
-    take, _, _, pitch = tracked_eyes
+    _, take, _, _, pitch = tracked_eyes
     for start, length in BLINKS:
         before = pitch[start - 1]
         during = pitch[blink_frames(start, length)]

@@ -16,11 +16,9 @@ from dataclasses import replace
 
 from exclone_addon.core.tracker_model import load_tracker_model
 
-from blender_tests.helpers.takes import (largest_false_weight, pose_errors, rendered_take,
-                                         track_rendered, track_true_points, unit_scores)
-
-# An ICT identity (the identity model's weights for this seed), not the bundled face.
-OTHER_IDENTITY = 7
+from blender_tests.helpers.takes import (OTHER_IDENTITY, largest_false_weight, pose_errors,
+                                         rendered_take, track_rendered, track_true_points,
+                                         unit_scores)
 
 # Measured with the face's appearance read beside the points (core.appearance, the map learnt
 # from 96 takes of other ICT identities, scripts/make_appearance_model.py, reading the face's

@@ -1,7 +1,7 @@
-"""An eye take: the bundled ICT head blinking (eyeBlink_L/R, 150 ms blinks among them) and
-looking about (its eyeballs turned by known angles, up to 20 degrees), facing the camera or
-turning (up to 25 degrees of yaw), rendered in background Blender by scripts/render_faces.py and
-cached on disk by its recipe.
+"""An eye take: an ICT-topology head (the bundled one or an ICT identity) blinking
+(eyeBlink_L/R, 150 ms blinks among them) and looking about (its eyeballs turned by known angles,
+up to 20 degrees), facing the camera or turning (up to 25 degrees of yaw), rendered in background
+Blender by scripts/render_faces.py and cached on disk by its recipe.
 """
 import hashlib
 import sys
@@ -17,7 +17,7 @@ from exclone_addon.core.library import load_library
 from exclone_addon.core.tracker_model import read_tracker_locations
 from exclone_addon.core.tracking import FRONTAL, Camera
 from blender_tests.helpers.frame_cache import cached_frames
-from blender_tests.helpers.takes import small_calibration_turn
+from blender_tests.helpers.takes import identity_head, small_calibration_turn
 from blender_tests.helpers.paths import REPO_ROOT
 
 sys.path.insert(0, str(REPO_ROOT / "scripts"))   # render_faces (rendering only)
@@ -85,35 +85,39 @@ def turned_eyes(vertices, eyeballs, yaw_deg, pitch_deg):
     return turned
 
 
-def _key(frames, turning):
+def _key(frames, turning, identity):
     text = f"v{EYE_TAKE_VERSION}-{frames}-{IMAGE_SIZE}-{DISTANCE_CM}-{BLINKS}-{GAZE_DEG}"
     if turning:
         text += f"-turning{HEAD_TURN_DEG}-calibration2"
+    if identity is not None:      # the bundled head's takes keep their cache keys
+        text += f"-identity{identity}"
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-def rendered_eye_take(frames=EYE_FRAMES, turning=False):
-    """The take's frames (PNG paths), its truth (blink, yaw, pitch), the camera and the CPU
-    seconds a frame took to render (0 when read from the cache); the head facing the camera, or
-    turning (head_turns)."""
+def rendered_eye_take(frames=EYE_FRAMES, turning=False, identity=None):
+    """The take's frames (PNG paths), its truth (blink, yaw, pitch), the head (neutral vertices,
+    expression deltas, key names: takes.identity_head of `identity`, None for the bundled head),
+    the camera and the CPU seconds a frame took to render (0 when read from the cache); the head
+    facing the camera, or turning (head_turns)."""
     blink, yaw, pitch = eye_recipe(frames)
     rotations = head_turns(frames, turning)
-    paths, seconds = cached_frames(EYE_CACHE / _key(frames, turning), frames,
-                                   lambda paths: _render(paths, blink, yaw, pitch, rotations))
+    vertices, deltas, names, parts = identity_head(identity)
+    paths, seconds = cached_frames(
+        EYE_CACHE / _key(frames, turning, identity), frames,
+        lambda paths: _render(paths, vertices, deltas, names, parts, blink, yaw, pitch, rotations))
     return SimpleNamespace(frames=paths, blink=blink, yaw=yaw, pitch=pitch, turning=turning,
+                           identity=identity, vertices=vertices, deltas=deltas, names=names,
                            camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds)
 
 
-def _render(paths, blink, yaw, pitch, rotations):
+def _render(paths, vertices, deltas, names, parts, blink, yaw, pitch, rotations):
     import render_faces      # needs bpy
-    library = load_library()
-    vertices, parts = library.mesh.vertices, library.parts
     located = read_tracker_locations().sample(vertices)
     renderer = render_faces.FaceRenderer(
-        render_faces.rendered_triangles(library.mesh.triangles(), parts),
+        render_faces.rendered_triangles(load_library().mesh.triangles(), parts),
         render_faces.vertex_colours(vertices, parts, located), IMAGE_SIZE)
-    blinks = [library.names.index(name) for name in ("eyeBlink_L", "eyeBlink_R")]
-    closing = library.deltas[blinks].sum(axis=0)
+    blinks = [names.index(name) for name in ("eyeBlink_L", "eyeBlink_R")]
+    closing = deltas[blinks].sum(axis=0)
     centre = located.mean(axis=0)
     translation = np.array([0.0, 0.0, DISTANCE_CM])
     start = time.process_time()

@@ -157,6 +157,9 @@ BUMP_FRAMES = 20               # each shape rises and falls over this many frame
 BUMP_SPACING = 10              # a new shape starts every this many frames (two overlap)
 RENDER_CACHE = Path(tempfile.gettempdir()) / "exclone_rendered_takes"
 RENDER_VERSION = 2             # bump when the renderer or a take's recipe changes
+# The ICT identity (the identity model's weights for this seed, identity_head) the rendered and
+# eye takes track beside the bundled head.
+OTHER_IDENTITY = 7
 # A wide calibration: the actor holds a neutral face and turns the head slowly over the range a
 # take uses (what a product can ask: "hold a neutral face and turn your head"), yaw +-30 deg and
 # pitch +-20 deg in a figure of eight over this many frames (3 s at 30 fps).
