@@ -220,3 +220,24 @@ def test_a_turned_eyes_lower_lid_counts_less_than_its_upper_lid():
     assert squint > 0.8 * wide > 0.2, read
     wide, squint = read[0.85]
     assert squint < 0.2 * wide, read
+
+
+def test_an_eye_does_not_look_in_and_out_at_once():
+    """A character's cloned eyeLookIn and eyeLookOut move the face's points about alike and
+    opposite (their sum by a fifth of either): the points' motion along that sum, with the eyes
+    looking ahead, must not raise both keys (the yaw row alone does not see their sum)."""
+    rng = np.random.default_rng(0)
+    names = ["eyeLookIn_R", "eyeLookOut_R", "browOuterUp_R"]
+    look = rng.normal(size=(10, 3))
+    shapes = np.array([look, -0.8 * look + 0.2 * rng.normal(size=(10, 3)), rng.normal(size=(10, 3))])
+    solver = WeightSolver(shapes, names)
+    targets = eyes.EyeTargets(names, NEUTRAL, key_scale=solver.scale)
+    # the points move as both keys at 0.8 would move them (the eyes read ahead)
+    weights = solver.solve(0.8 * (shapes[0] + shapes[1]), *targets.rows(NEUTRAL))
+    assert weights[0] < 0.1 and weights[1] < 0.1, weights
+    # the eyes read looking in by 15 degrees: the right eye's In at 0.5, its Out at 0
+    looking = eyes.EyeReading(NEUTRAL.upper, NEUTRAL.lower, np.zeros((2, 2)))
+    looking.iris[:, 0] = eyes.EYE_RADIUS_WIDTHS * np.sin(np.radians(15))
+    weights = solver.solve(0.8 * (shapes[0] + shapes[1]), *eyes.EyeTargets(
+        names, NEUTRAL, key_scale=solver.scale).rows(looking))
+    assert weights[0] == pytest.approx(0.5, abs=0.1) and weights[1] < 0.1, weights

@@ -21,8 +21,10 @@ ARKit's eye keys by name (an avatar without them gets no eye rows):
   squint raises the lower one, wide raises the upper one;
 - gaze: the iris's shift, as an angle of the eyeball (EYE_RADIUS_WIDTHS), the same for both
   eyes (conjugate_gaze), against the eyeLook keys: yaw = Out - In for the left eye (In - Out
-  for the right), pitch = Up - Down, at EYE_LOOK_FULL_DEG for a weight of 1. While the eyes are closing their irises are not read: the
-  gaze holds the last open reading, so a blink is never read as looking down.
+  for the right), pitch = Up - Down, at EYE_LOOK_FULL_DEG for a weight of 1, and each pair's
+  sum at the turn's size (an eye does not look in and out at once). While the eyes are closing
+  their irises are not read: the gaze holds the last open reading, so a blink is never read as
+  looking down.
 Each target row weighs EYE_TRUST times a typical key's landmark evidence: what the iris model
 reads of the eyes overrules what the face's landmarks suggest there.
 """
@@ -358,10 +360,10 @@ class EyeTargets:
         facing = np.ones(2) if reading.facing is None else reading.facing
         rows, targets = [], []
         for k, eye_rows in enumerate(self._rows):
-            values = (upper[k], lower[k], self._open_gaze[k, 0] / EYE_LOOK_FULL_DEG,
-                      self._open_gaze[k, 1] / EYE_LOOK_FULL_DEG)
+            yaw, pitch = self._open_gaze[k] / EYE_LOOK_FULL_DEG
+            values = (upper[k], lower[k], yaw, pitch, abs(yaw), abs(pitch))
             trust = (facing[k] ** UPPER_LID_FACING_POWER, facing[k] ** LOWER_LID_FACING_POWER,
-                     1.0, 1.0)
+                     1.0, 1.0, 1.0, 1.0)
             for row, value, weight in zip(eye_rows, values, trust):
                 if row is not None:
                     rows.append(weight * row)
@@ -372,9 +374,13 @@ class EyeTargets:
 
 
 def _eye_rows(names, side):
-    """(upper-lid row, lower-lid row, yaw row, pitch row) of one eye over the keys, each (N,) or
-    None when the avatar lacks all of its keys (LID_CHANGES; yaw towards the subject's left:
-    the left eye looks out, the right one in; pitch up)."""
+    """(upper-lid row, lower-lid row, yaw row, pitch row, yaw's size row, pitch's size row) of
+    one eye over the keys, each (N,) or None when the avatar lacks all of its keys (LID_CHANGES;
+    yaw towards the subject's left: the left eye looks out, the right one in; pitch up). The
+    size rows hold each pair's sum to the turn's size, as ARKit's keys read (an eye does not
+    look in and out at once): a pair whose keys move the face's points about alike and
+    opposite (a character's cloned eyeLook keys: their sum moves them by a fifth of either)
+    would otherwise rise together, unseen by the turn's row, to follow the points' noise."""
     index = {name: j for j, name in enumerate(names)}
 
     def row(coefficients):
@@ -390,4 +396,6 @@ def _eye_rows(names, side):
     return (row([(key, up) for key, up, _ in LID_CHANGES]),
             row([(key, down) for key, _, down in LID_CHANGES]),
             row([(outwards, 1.0), (inwards, -1.0)]),
-            row([("eyeLookUp", 1.0), ("eyeLookDown", -1.0)]))
+            row([("eyeLookUp", 1.0), ("eyeLookDown", -1.0)]),
+            row([(outwards, 1.0), (inwards, 1.0)]),
+            row([("eyeLookUp", 1.0), ("eyeLookDown", 1.0)]))
