@@ -12,7 +12,7 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.optimize import lsq_linear, nnls
 
-from . import data
+from . import character, data
 from .cloning import clone_expressions
 from .errors import ExCloneError
 from .mesh import MeshError, PolyMesh, vertex_parts
@@ -54,23 +54,36 @@ def locate_canonical_face(canonical, avatar, avatar_triangles=None, settings=Non
     """Where the tracker's landmarks (the canonical face's vertices) lie on the avatar's surface.
 
     The cloning engine registers the canonical face onto the avatar (automatic landmarks); each
-    registered vertex is then snapped to the closest point of `avatar_triangles`. By default
-    that is the connected part of the avatar most of them are closest to (its skin): near the
-    lips and eyes the closest point is otherwise often on teeth, eyeballs or lashes (on the ICT
-    head 38 of 468 were).
-    Returns (SurfaceLocations, distances of the snap (m,)).
+    registered vertex is then snapped to the closest point of `avatar_triangles`, registered on
+    the whole avatar. By default the face is first found on the avatar as Clone finds a
+    character's (core.character.found_or_whole: by rendering it, a full body cut to its head
+    region), the canonical face registered there with the found face's guide, and each point
+    snapped to the head region's part most of them are closest to (its skin): near the lips and
+    eyes the closest point is otherwise often on teeth, eyeballs or lashes (on the ICT head 38 of
+    468 were).
+    Returns (SurfaceLocations in the avatar's numbering, distances of the snap (m,)).
     """
+    if avatar_triangles is not None:
+        points = _registered(canonical, avatar, None, settings, progress)
+        return locate_points(points, avatar.vertices, avatar_triangles)
+    face = character.found_or_whole([character.Part("avatar", avatar)])
+    head = face.head.mesh
+    points = _registered(canonical, head, face.guide, settings, progress)
+    triangles = head.triangles()
+    parts = vertex_parts(len(head.vertices), triangles)
+    first, _ = locate_points(points, head.vertices, triangles)
+    skin = np.bincount(parts[first.corners[:, 0]]).argmax()
+    located, distances = locate_points(points, head.vertices,
+                                       triangles[parts[triangles[:, 0]] == skin])
+    return SurfaceLocations(face.head.own_ids(located.corners), located.bary), distances
+
+
+def _registered(canonical, target, face_guide, settings, progress):
+    """(n, 3) the canonical face's vertices registered onto the target PolyMesh."""
     n = len(canonical.vertices)
-    result = clone_expressions(canonical, np.zeros((1, n, 3)), ["neutral"], avatar,
-                               settings=settings, progress=progress)
-    points = result.registered_source
-    if avatar_triangles is None:
-        triangles = avatar.triangles()
-        parts = vertex_parts(len(avatar.vertices), triangles)
-        first, _ = locate_points(points, avatar.vertices, triangles)
-        skin = np.bincount(parts[first.corners[:, 0]]).argmax()
-        avatar_triangles = triangles[parts[triangles[:, 0]] == skin]
-    return locate_points(points, avatar.vertices, avatar_triangles)
+    return clone_expressions(canonical, np.zeros((1, n, 3)), ["neutral"], target,
+                             settings=settings, progress=progress,
+                             face_guide=face_guide).registered_source
 
 
 # Below this fraction of the largest key's motion at the tracked points a key is not read.
