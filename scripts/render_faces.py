@@ -4,7 +4,9 @@ track through the image models (blender_tests/helpers/takes.py).
 
 The head is an ICT-FaceKit topology mesh (the bundled library, or an ICT identity): skin, lips
 and brows coloured per vertex, white eyeballs with a dark iris and pupil, dark mouth socket,
-lashes; the see-through shells around the eyes (lacrimal fluid, occlusion) are left out.
+lashes; the see-through shells around the eyes (lacrimal fluid, occlusion) are left out. Or a
+character's meshes (character_colours): its skin with the lips painted, its eyes, brows,
+lashes, teeth and tongue coloured as the ICT head's are.
 The camera is OpenCV's pinhole (x right, y down, z forward) at Blender's origin: a point p in
 camera space is placed at (p_x, -p_y, -p_z), and the image is what core.tracking.Camera with
 the same intrinsics projects.
@@ -45,11 +47,8 @@ def vertex_colours(vertices, parts, located_points):
     """
     colours = np.tile(SKIN, (len(vertices), 1))
     start, stop = parts["face"]
-    skin = vertices[start:stop]
-    eye_distance = np.linalg.norm(located_points[33] - located_points[263])
-    for ids, colour, reach in ((LIP_POINTS, LIPS, 0.05), (BROW_POINTS, BROWS, 0.07)):
-        near = cKDTree(located_points[list(ids)]).query(skin)[0] < reach * eye_distance
-        colours[start:stop][near] = colour
+    _paint(colours[start:stop], vertices[start:stop], located_points,
+           ((LIP_POINTS, LIPS, 0.05), (BROW_POINTS, BROWS, 0.07)))
     for name, colour in (("mouth_socket", MOUTH), ("gums_and_tongue", MOUTH), ("teeth", TEETH),
                          ("eye_sockets", MOUTH), ("eyelashes", LASHES)):
         start, stop = parts[name]
@@ -59,10 +58,48 @@ def vertex_colours(vertices, parts, located_points):
     return colours
 
 
+def character_colours(parts, located_points):
+    """(n, 3) linear RGB per vertex of a character's meshes (parts: [(object name, vertices
+    (k, 3) in model space, the face looking along +Z about x = 0)], in that order): eyes, brows,
+    lashes, teeth and tongue by their names (MakeHuman's: Eye_L, Eyes, Eyebrows, Eyelashes,
+    Teeth, Tongue), the rest skin with the lips painted around located_points' (the tracker's
+    468 points on it)."""
+    coloured = []
+    for name, vertices in parts:
+        name = name.lower()
+        colours = np.tile(SKIN, (len(vertices), 1))
+        if "brow" in name:
+            colours[:] = BROWS
+        elif "lash" in name:
+            colours[:] = LASHES
+        elif name.startswith("eye"):
+            colours = _eyeball_colours(vertices)
+        elif "teeth" in name:
+            colours[:] = TEETH
+        elif "tongue" in name:
+            colours[:] = MOUTH
+        else:
+            _paint(colours, vertices, located_points, ((LIP_POINTS, LIPS, 0.05),))
+        coloured.append(colours)
+    return np.vstack(coloured)
+
+
+def _paint(colours, skin, located_points, features):
+    """Paints `colours` (of the vertices `skin`) in place: each feature (FaceMesh point ids,
+    colour, reach) within its reach (a fraction of the eye distance) of its located points."""
+    eye_distance = np.linalg.norm(located_points[33] - located_points[263])
+    for ids, colour, reach in features:
+        near = cKDTree(located_points[list(ids)]).query(skin)[0] < reach * eye_distance
+        colours[near] = colour
+
+
 def _eyeball_colours(eyeballs):
-    """Sclera, iris and pupil by the angle from each eyeball's forward (+Z) axis."""
+    """Sclera, iris and pupil by the angle from each eyeball's forward (+Z) axis (the eyeballs
+    either side of x = 0; one alone too)."""
     colours = np.tile(SCLERA, (len(eyeballs), 1))
     for side in (eyeballs[:, 0] < 0, eyeballs[:, 0] >= 0):
+        if not side.any():
+            continue
         points = eyeballs[side]
         centre = 0.5 * (points.min(axis=0) + points.max(axis=0))
         direction = points - centre

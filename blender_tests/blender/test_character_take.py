@@ -1,0 +1,131 @@
+"""Tracking through the image models onto a character no build step learns from: a MakeHuman
+body (../shared/data/characters) given the ARKit keys by Clone, rendered wearing them with known
+weights of the 17 driven shapes and a known head turn (blender_tests/helpers/character_takes.py),
+tracked frame by frame by FaceTrackingSession.step onto the same character as a user's avatar (the
+tracker's points located on its body as Drive from Webcam locates them), so the ideal answer is
+the truth. The tracker model, the eyes' slide and the appearance map were learnt from ICT heads:
+this face differs in topology, look and proportions. Figures as test_rendered_takes' (measured,
+checked with a margin; the targets as strict expected failures)."""
+import numpy as np
+import pytest
+
+from blender_tests.helpers.character_takes import cloned_character, rendered_character_take
+from blender_tests.helpers.takes import (largest_false_weight, pose_errors, track_rendered,
+                                         unit_scores)
+
+
+def _tracked(kind):
+    take = rendered_character_take(kind)
+    return take, track_rendered(take, avatar=take.avatar)
+
+
+@pytest.fixture(scope="module")
+def moving(shared_data):
+    return _tracked("moving")
+
+
+@pytest.fixture(scope="module")
+def still(shared_data):
+    return _tracked("still")
+
+
+@pytest.fixture(scope="module")
+def turning(shared_data):
+    return _tracked("turning")
+
+
+def test_the_avatars_face_is_found_on_the_body(shared_data):
+    """The tracker's points are located on the body's face as Clone finds it (the face found by
+    rendering, the head region cut from the body): each eye's corners about its eyeball. Before,
+    the canonical face was registered onto the whole body and no face was found there."""
+    character = cloned_character()
+    eyeballs = {name: vertices.mean(axis=0) for name, vertices, _, _ in character.meshes
+                if name in ("Eye_L", "Eye_R")}
+    points = character.located
+    eye_distance = np.linalg.norm(points[33] - points[263])
+    for name, corners in (("Eye_R", (33, 133)), ("Eye_L", (362, 263))):
+        between = points[list(corners)].mean(axis=0)
+        assert np.all(np.abs(between - eyeballs[name])[:2] < 0.15 * eye_distance), (
+            name, between, eyeballs[name])
+
+
+def _figures(take, tracked):
+    scores = unit_scores(take, tracked)
+    correlations = np.array([c for c, _ in scores.values()])
+    text = ", ".join(f"{unit} {c:.2f}" for unit, (c, _) in scores.items())
+    return correlations, np.mean([e for _, e in scores.values()]), text
+
+
+# Measured (mean correlation over the 17 driven shapes, MAE): the head moving 0.704, 0.047 (the
+# lowest browDown_L -0.08, browInnerUp 0.36, mouthFrown_R 0.35; read at a median 0.33 of their
+# size); still 0.930, 0.021 (the lowest browDown_L 0.57, browDown_R 0.80). Without the face's
+# appearance, moving: 0.436, 0.092. After a wide calibration (helpers.takes, "wide"), moving:
+# 0.728, 0.042. On the ICT heads the moving takes read 0.93-0.95: here the head's motion costs
+# the most (the rotation below).
+MEASURED_WEIGHTS = {"moving": (0.67, 0.05), "still": (0.90, 0.025)}
+
+
+@pytest.mark.parametrize("take_name", sorted(MEASURED_WEIGHTS))
+def test_weights_follow_the_characters_face_as_measured(take_name, request):
+    correlations, mae, text = _figures(*request.getfixturevalue(take_name))
+    least_mean, most_mae = MEASURED_WEIGHTS[take_name]
+    assert correlations.mean() >= least_mean and mae <= most_mae, f"MAE {mae:.3f}; {text}"
+
+
+@pytest.mark.xfail(strict=True, reason="measured: 0.704 with the head moving (browDown_L -0.08, "
+                                       "browInnerUp 0.36, mouthFrown_R 0.35), MAE 0.047; 0.930 "
+                                       "with it still but browDown_L 0.57")
+@pytest.mark.parametrize("take_name", ["moving", "still"])
+def test_weights_reach_the_target(take_name, request):
+    correlations, mae, text = _figures(*request.getfixturevalue(take_name))
+    assert correlations.mean() >= 0.85 and correlations.min() >= 0.7 and mae <= 0.08, text
+
+
+# Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll): moving
+# 2.99, 5.95 (1.11, 1.12, 0.98); the neutral face turning 2.84, 6.73 (1.08, 1.10, 1.02). After a
+# wide calibration, moving: 2.13, 4.25 (1.08, 1.05, 0.98). The turn reads about a tenth too large
+# about both axes: the calibrated neutral is flatter than this face (its depth against the
+# true points' 1 : 1.077; the tracker model's mean 1 : 1.048; ICT heads 1 : 1.04), which a
+# one-second calibration turning 10 deg cannot see (the wide one: 1 : 1.011).
+MEASURED_POSE = {"moving": (3.2, 6.3), "turning": (3.0, 7.1)}
+SLOPE_RANGE = (0.95, 1.15)
+
+
+@pytest.mark.parametrize("take_name", sorted(MEASURED_POSE))
+def test_head_rotation_as_measured(take_name, request):
+    errors, slopes = pose_errors(*request.getfixturevalue(take_name))
+    most_median, most_max = MEASURED_POSE[take_name]
+    assert np.median(errors) <= most_median and errors.max() <= most_max, (np.median(errors),
+                                                                           errors.max())
+    low, high = SLOPE_RANGE
+    assert np.all((slopes >= low) & (slopes <= high)), slopes
+
+
+@pytest.mark.xfail(strict=True, reason="measured: median 2.99 deg, max 5.95 deg, pitch and yaw "
+                                       "at 1.11 and 1.12 of their size (see MEASURED_POSE)")
+def test_head_rotation_reaches_the_target(moving):
+    errors, slopes = pose_errors(*moving)
+    assert np.median(errors) <= 1.5 and errors.max() <= 3.0
+    assert np.all(np.abs(slopes - 1) <= 0.05), slopes
+
+
+# Measured on the neutral face turning up to 30 deg: the largest weight 0.72 (eyeWide_R; 1.00,
+# eyeLookOut_R and eyeLookIn_R together, before each eyeLook pair's sum was held to the gaze's
+# size: core.eyes), the gaze 0.50 (eyeLookOut_R; the same onto the ICT head as the avatar: the
+# iris model's reading of these eyes slides more with the turn than an ICT head's, 0.30), the
+# keys the eyes do not read 0.31 (browOuterUp_L). Checked with a margin.
+MEASURED_FALSE_WEIGHT = {"": 0.76, "eye": 0.76, "others": 0.34}
+
+
+@pytest.mark.parametrize("keys", sorted(MEASURED_FALSE_WEIGHT))
+def test_a_turning_neutral_face_as_measured(turning, keys):
+    value, name = (largest_false_weight(*turning, but="eye") if keys == "others"
+                   else largest_false_weight(*turning, only=keys))
+    assert value <= MEASURED_FALSE_WEIGHT[keys], f"{name} reached {value:.2f}"
+
+
+@pytest.mark.xfail(strict=True, reason="measured: 0.72 (eyeWide_R), the keys the eyes do not "
+                                       "read 0.31 (browOuterUp_L)")
+def test_a_turning_neutral_face_makes_no_expression(turning):
+    value, name = largest_false_weight(*turning)
+    assert value <= 0.15, f"{name} reached {value:.2f}"
