@@ -229,7 +229,8 @@ def test_an_eye_does_not_look_in_and_out_at_once():
     rng = np.random.default_rng(0)
     names = ["eyeLookIn_R", "eyeLookOut_R", "browOuterUp_R"]
     look = rng.normal(size=(10, 3))
-    shapes = np.array([look, -0.8 * look + 0.2 * rng.normal(size=(10, 3)), rng.normal(size=(10, 3))])
+    shapes = np.array([look, -0.8 * look + 0.2 * rng.normal(size=(10, 3)),
+                       rng.normal(size=(10, 3))])
     solver = WeightSolver(shapes, names)
     targets = eyes.EyeTargets(names, NEUTRAL, key_scale=solver.scale)
     # the points move as both keys at 0.8 would move them (the eyes read ahead)

@@ -59,6 +59,20 @@ def test_rbf_with_linear_term_maps_affine_faces_exactly():
         map_blendshapes(avatar, deltas, actor[:10])
 
 
+def test_an_avatars_units_do_not_change_its_mapped_shapes():
+    """The same avatar in centimetres, metres or millimetres maps to the same motion: the RBF's
+    smoothing is in the actor's units. (Before, a MakeHuman body in metres mapped its eyeBlink
+    to 0.81 of the same body's in centimetres.)"""
+    rng = np.random.default_rng(4)
+    avatar = 10.0 * rng.normal(size=(60, 3))                 # centimetres
+    deltas = 0.5 * rng.normal(size=(4, 60, 3))
+    actor = avatar + rng.normal(size=(60, 3))                 # a face unlike the avatar's
+    mapped = map_blendshapes(avatar, deltas, actor)
+    for unit in (0.01, 10.0):
+        np.testing.assert_allclose(map_blendshapes(unit * avatar + 5.0, unit * deltas, actor),
+                                   mapped, rtol=1e-6, atol=1e-9)
+
+
 def test_weight_solver_known_weights_and_bounds():
     rng = np.random.default_rng(4)
     shapes = rng.normal(size=(8, 40, 3))

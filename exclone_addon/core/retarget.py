@@ -146,6 +146,8 @@ def map_blendshapes(avatar_neutral, avatar_deltas, actor_neutral, kernel="thin_p
     j is F(e'_0 + e'_j) - F(e'_0). Returns (N, m, 3).
     A little smoothing: landmarks can land on the same avatar point (e.g. inner-lip points
     snapped to the lip border), and exact interpolation of two targets at one point explodes.
+    The smoothing is in the actor's units: the avatar's points are first scaled about their
+    centre to the actor's size, so an avatar in metres maps as the same one in centimetres.
     """
     avatar_neutral = np.asarray(avatar_neutral, dtype=np.float64)
     actor_neutral = np.asarray(actor_neutral, dtype=np.float64)
@@ -153,11 +155,18 @@ def map_blendshapes(avatar_neutral, avatar_deltas, actor_neutral, kernel="thin_p
     if avatar_neutral.shape != actor_neutral.shape or deltas.shape[1:] != avatar_neutral.shape:
         raise ExCloneError(f"landmark counts differ: avatar neutral {avatar_neutral.shape}, "
                            f"actor neutral {actor_neutral.shape}, avatar shapes {deltas.shape}")
-    rbf = RBFInterpolator(avatar_neutral, actor_neutral, kernel=kernel, degree=1,
-                          smoothing=smoothing)
-    base = rbf(avatar_neutral)
-    moved = rbf((avatar_neutral[None] + deltas).reshape(-1, 3)).reshape(deltas.shape)
-    return moved - base[None]
+    centre = avatar_neutral.mean(axis=0)
+    scale = _spread(actor_neutral) / max(_spread(avatar_neutral), 1e-300)
+    rbf = RBFInterpolator(scale * (avatar_neutral - centre), actor_neutral, kernel=kernel,
+                          degree=1, smoothing=smoothing)
+    base = rbf(scale * (avatar_neutral - centre))
+    moved = rbf(scale * (avatar_neutral[None] + deltas - centre).reshape(-1, 3))
+    return moved.reshape(deltas.shape) - base[None]
+
+
+def _spread(points):
+    """The points' root mean square distance from their centre."""
+    return np.sqrt(((points - points.mean(axis=0)) ** 2).sum(axis=1).mean())
 
 
 class WeightSolver:
