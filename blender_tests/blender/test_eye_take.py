@@ -58,8 +58,8 @@ BLINKS_SHORT = {
                               "down): the iris model's contour of that closed eye keeps most of "
                               "its open height (the rendered lashes' dark line read as a narrow "
                               "eye). On four more ICT identities turning, the weakest blink "
-                              "0.47-0.65 and the largest false blink 0.38-0.57; facing the "
-                              "camera every blink is found on all of them"}
+                              "0.47-0.65 and the largest false blink 0.36-0.57; facing the "
+                              "camera every blink is found on the three tried"}
 
 
 def _blink_peaks(weights):
