@@ -34,19 +34,25 @@ def turning(shared_data):
     return _tracked("turning")
 
 
-def test_the_avatars_face_is_found_on_the_body(shared_data):
+@pytest.mark.parametrize("file_name, shapes", [("mh_male_body.blend", None),
+                                               ("mh_female_old_body.fbx", "jawOpen,eyeBlink_L")])
+def test_the_avatars_face_is_found_on_the_body(file_name, shapes, shared_data):
     """The tracker's points are located on the body's face as Clone finds it (the face found by
-    rendering, the head region cut from the body): each eye's corners about its eyeball. Before,
-    the canonical face was registered onto the whole body and no face was found there."""
-    character = cloned_character()
-    eyeballs = {name: vertices.mean(axis=0) for name, vertices, _, _ in character.meshes
-                if name in ("Eye_L", "Eye_R")}
+    rendering, the head region cut from the body): a face's size, the eye corners about the
+    eyeballs. Before, the canonical face was registered onto the whole body: here no face was
+    found on either (1 and 3 landmarks); through the add-on's avatar_rig the old woman's FBX
+    (Y-up centimetres, its rotation and scale left on the objects) got one spread over the upper
+    body (62 x 54 cm, the eye corners 16.6 cm below the eyes) without an error."""
+    character = cloned_character(file_name, shapes)
+    eyeballs = np.vstack([vertices for name, vertices, _, _ in character.meshes
+                          if name.lower().startswith("eye") and "brow" not in name.lower()
+                          and "lash" not in name.lower()])
     points = character.located
     eye_distance = np.linalg.norm(points[33] - points[263])
-    for name, corners in (("Eye_R", (33, 133)), ("Eye_L", (362, 263))):
-        between = points[list(corners)].mean(axis=0)
-        assert np.all(np.abs(between - eyeballs[name])[:2] < 0.15 * eye_distance), (
-            name, between, eyeballs[name])
+    assert np.all(np.ptp(points, axis=0)[:2] < 3.0 * eye_distance), np.ptp(points, axis=0)
+    corners = points[[33, 133, 362, 263]].mean(axis=0)
+    assert np.all(np.abs(corners - eyeballs.mean(axis=0))[:2] < 0.1 * eye_distance), (
+        corners, eyeballs.mean(axis=0))
 
 
 def _figures(take, tracked):

@@ -32,18 +32,21 @@ CHARACTER_CACHE = Path(tempfile.gettempdir()) / "exclone_character_takes"
 TO_MODEL = 100.0 * np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 
 
-@functools.lru_cache(maxsize=1)
-def cloned_character():
-    """The character with the bundled library's expressions cloned onto it by the command line,
-    read back: its meshes in model space ([(name, vertices, triangles, {key: deltas})], the
-    body first), the body's key names and its AvatarRig (the tracker's points located on the
-    body as a take locates them on an avatar), with the located points in model space."""
+@functools.lru_cache(maxsize=2)
+def cloned_character(file_name=CHARACTER, shapes=None):
+    """The character (a file of ../shared/data/characters whose body is named Body) with the
+    bundled library's expressions (or those named in `shapes`, comma-separated) cloned onto it
+    by the command line, read back: its meshes in model space ([(name, vertices, triangles,
+    {key: deltas})], the body first), the body's key names and its AvatarRig (the tracker's
+    points located on the body as a take locates them on an avatar), with the located points in
+    model space."""
     import batch_clone
     import bpy
     folder = Path(tempfile.mkdtemp(prefix="exclone_character_"))
     out = folder / "character.blend"
-    code = batch_clone.main(["--target", str(SHARED_DATA / "characters" / CHARACTER),
-                             "--no-preview", "--out", str(out)])
+    code = batch_clone.main(["--target", str(SHARED_DATA / "characters" / file_name),
+                             "--no-preview", "--out", str(out)]
+                            + (["--shapes", shapes] if shapes else []))
     if code != 0:
         raise RuntimeError(f"batch_clone exited with {code}")
     bpy.ops.wm.read_factory_settings(use_empty=True)
