@@ -9,7 +9,8 @@ checked with a margin; the targets as strict expected failures)."""
 import numpy as np
 import pytest
 
-from blender_tests.helpers.character_takes import cloned_character, rendered_character_take
+from blender_tests.helpers.character_takes import (CHARACTER, cloned_character,
+                                                   rendered_character_take)
 from blender_tests.helpers.takes import (largest_false_weight, pose_errors, track_rendered,
                                          unit_scores)
 
@@ -34,7 +35,7 @@ def turning(shared_data):
     return _tracked("turning")
 
 
-@pytest.mark.parametrize("file_name, shapes", [("mh_male_body.blend", None),
+@pytest.mark.parametrize("file_name, shapes", [(CHARACTER, None),
                                                ("mh_female_old_body.fbx", "jawOpen,eyeBlink_L")])
 def test_the_avatars_face_is_found_on_the_body(file_name, shapes, shared_data):
     """The tracker's points are located on the body's face as Clone finds it (the face found by

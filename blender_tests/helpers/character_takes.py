@@ -99,7 +99,7 @@ def _mesh_arrays(obj):
 def rendered_character_take(kind="moving"):
     """The character's take (takes.take_recipe's `kind`, the small calibration), rendered: as
     takes.rendered_take's, with avatar (the character's AvatarRig)."""
-    character = cloned_character()
+    character = cloned_character(CHARACTER, None)
     weights, angles = take_recipe(kind)
     names = character.names
     truth = np.zeros((len(weights), len(names)))
