@@ -8,7 +8,6 @@ import functools
 import hashlib
 import sys
 import tempfile
-import time
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -21,7 +20,8 @@ from blender_tests.helpers.character_files import load_into_scene
 from blender_tests.helpers.frame_cache import cached_frames
 from blender_tests.helpers.paths import REPO_ROOT, SHARED_DATA
 from blender_tests.helpers.takes import (DRIVEN, IMAGE_SIZE, RENDER_DISTANCE_CM,
-                                         calibration_length, take_recipe, unit_keys)
+                                         calibration_length, render_frames, take_recipe,
+                                         unit_keys)
 
 sys.path.insert(0, str(REPO_ROOT / "scripts"))   # batch_clone, render_faces
 
@@ -115,23 +115,19 @@ def rendered_character_take(kind="moving"):
     key = f"{CHARACTER}-{kind}-{len(weights)}-{IMAGE_SIZE}-{RENDER_DISTANCE_CM}-{digest}"
     paths, seconds = cached_frames(
         CHARACTER_CACHE / hashlib.sha1(key.encode()).hexdigest()[:16], len(weights),
-        lambda paths: _render(paths, character, vertices, deltas, truth,
-                              rotations, centre, translation))
+        lambda paths: _render(paths, character, vertices, deltas, truth, rotations,
+                              translation, centre))
     return SimpleNamespace(frames=paths, truth=truth, unit_weights=weights, names=names,
                            rotations=rotations, translation=translation, kind=kind,
                            camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds,
                            calibration_frames=calibration_length(), avatar=character.rig)
 
 
-def _render(paths, character, vertices, deltas, truth, rotations, centre, translation):
+def _render(paths, character, vertices, deltas, truth, rotations, translation, centre):
     import render_faces      # needs bpy
     offsets = np.cumsum([0] + [len(v) for _, v, _, _ in character.meshes])
     triangles = np.vstack([t + offset for (_, _, t, _), offset in zip(character.meshes, offsets)])
     colours = render_faces.character_colours([(name, v) for name, v, _, _ in character.meshes],
                                              character.located)
     renderer = render_faces.FaceRenderer(triangles, colours, IMAGE_SIZE)
-    start = time.process_time()
-    for k, path in enumerate(paths):
-        posed = vertices + np.tensordot(truth[k], deltas, axes=1)
-        renderer.render(rotations[k].apply(posed - centre) + translation, path)
-    return (time.process_time() - start) / len(paths)
+    return render_frames(renderer, paths, vertices, deltas, truth, rotations, translation, centre)

@@ -123,5 +123,6 @@ def _render(paths, vertices, deltas, names, parts, blink, yaw, pitch, rotations)
     start = time.process_time()
     for k, path in enumerate(paths):
         posed = turned_eyes(vertices + blink[k] * closing, parts["eyeballs"], yaw[k], pitch[k])
-        renderer.render(rotations[k].apply(posed - centre) + translation, path)
+        renderer.render(render_faces.head_pose_points(posed, rotations[k], translation, centre),
+                        path)
     return (time.process_time() - start) / len(paths)

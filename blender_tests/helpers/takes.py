@@ -282,10 +282,19 @@ def _render_take(paths, vertices, deltas, parts, truth, rotations, translation, 
     colours = render_faces.vertex_colours(vertices, parts, locations.sample(vertices))
     renderer = render_faces.FaceRenderer(
         render_faces.rendered_triangles(load_library().mesh.triangles(), parts), colours, IMAGE_SIZE)
+    return render_frames(renderer, paths, vertices, deltas, truth, rotations, translation, centre)
+
+
+def render_frames(renderer, paths, vertices, deltas, truth, rotations, translation, centre):
+    """Renders frame k to paths[k] (render_faces.FaceRenderer `renderer`): the head's vertices
+    wearing the weights truth[k] of `deltas`, turned by rotations[k] about `centre` and moved to
+    `translation`; returns the CPU seconds per frame."""
+    import render_faces      # needs bpy: imported only when a take is rendered
     start = time.process_time()
     for k, path in enumerate(paths):
         posed = vertices + np.tensordot(truth[k], deltas, axes=1)
-        renderer.render(rotations[k].apply(posed - centre) + translation, path)
+        renderer.render(render_faces.head_pose_points(posed, rotations[k], translation, centre),
+                        path)
     return (time.process_time() - start) / len(paths)
 
 
