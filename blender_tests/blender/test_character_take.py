@@ -10,29 +10,11 @@ import numpy as np
 import pytest
 
 from blender_tests.helpers.character_takes import (CHARACTER, cloned_character,
-                                                   rendered_character_take)
-from blender_tests.helpers.takes import (largest_false_weight, pose_errors, track_rendered,
-                                         unit_scores)
+                                                   rendered_character_take, tracked_take_fixtures)
+from blender_tests.helpers.takes import (assert_pose_as_measured, largest_false_weight,
+                                         pose_errors, unit_scores)
 
-
-def _tracked(kind):
-    take = rendered_character_take(kind)
-    return take, track_rendered(take, avatar=take.avatar)
-
-
-@pytest.fixture(scope="module")
-def moving(shared_data):
-    return _tracked("moving")
-
-
-@pytest.fixture(scope="module")
-def still(shared_data):
-    return _tracked("still")
-
-
-@pytest.fixture(scope="module")
-def turning(shared_data):
-    return _tracked("turning")
+moving, still, turning = tracked_take_fixtures(rendered_character_take)
 
 
 @pytest.mark.parametrize("file_name, shapes", [(CHARACTER, None),
@@ -100,12 +82,8 @@ SLOPE_RANGE = (0.95, 1.15)
 
 @pytest.mark.parametrize("take_name", sorted(MEASURED_POSE))
 def test_head_rotation_as_measured(take_name, request):
-    errors, slopes = pose_errors(*request.getfixturevalue(take_name))
-    most_median, most_max = MEASURED_POSE[take_name]
-    assert np.median(errors) <= most_median and errors.max() <= most_max, (np.median(errors),
-                                                                           errors.max())
-    low, high = SLOPE_RANGE
-    assert np.all((slopes >= low) & (slopes <= high)), slopes
+    assert_pose_as_measured(*request.getfixturevalue(take_name), *MEASURED_POSE[take_name],
+                            SLOPE_RANGE)
 
 
 @pytest.mark.xfail(strict=True, reason="measured: median 2.99 deg, max 5.95 deg, pitch and yaw "

@@ -106,6 +106,34 @@ def test_an_avatar_without_arkit_eye_keys_gets_no_eye_rows():
     assert weights["eyeBlink_L"] < 1e-6
 
 
+def test_keys_that_close_an_eye_are_its_blink_whatever_their_names():
+    """An avatar with its own keys (a character's eye-left-closure, VRM's Blink): the keys
+    that close an eye on the avatar (retarget.eye_closures) get that eye's blink rows, the
+    others none; a closed eye reads them closed, an open one open. An avatar with the ARKit lid
+    keys keeps its rows by name whatever the closures say."""
+    names = ["eye-right-closure", "eye-left-closure", "Blink", "squint_R", "mouth-open"]
+    # the share of each eye's opening (subject's right, left) each key closes
+    closures = np.array([[1.0, 0.0], [0.0, 0.95], [1.0, 1.0], [0.3, 0.0], [0.0, 0.0]])
+    targets = eyes.EyeTargets(names, NEUTRAL, key_scale=1.0, closures=closures)
+    assert targets.keys.tolist() == [True, True, True, False, False]
+    opening = NEUTRAL.opening
+    left_closed = eyes.EyeReading(NEUTRAL.upper - [0.0, 0.45 * opening[1]],
+                                  NEUTRAL.lower + [0.0, 0.1 * opening[1]], NEUTRAL.iris.copy())
+    solver = WeightSolver(np.zeros((len(names), 10, 3)), names)
+    for reading, expected in ((NEUTRAL, [0, 0, 0]), (left_closed, [0, 1, 0])):
+        rows, values = targets.rows(reading)
+        weights = solver.solve(np.zeros((10, 3)), rows, values)
+        # each closing key alone would explain its eye; together the solve shares it out
+        assert weights[0] + weights[2] == pytest.approx(expected[0], abs=0.05)
+        assert weights[1] * 0.95 + weights[2] == pytest.approx(expected[1], abs=0.05)
+        assert weights[3] < 1e-6 and weights[4] < 1e-6
+    arkit = ["eyeBlink_R", "eyeBlink_L", "eye-left-closure"]
+    by_name = eyes.EyeTargets(arkit, NEUTRAL, key_scale=1.0)
+    with_closures = eyes.EyeTargets(arkit, NEUTRAL, key_scale=1.0,
+                                    closures=np.array([[1.0, 0.0], [0.0, 1.0], [0.0, 1.0]]))
+    np.testing.assert_array_equal(by_name.rows(left_closed)[0], with_closures.rows(left_closed)[0])
+
+
 def test_the_rows_name_the_keys_they_read():
     names = ["jawOpen", "eyeBlink_L", "eyeLookOut_R", "browDown_L", "eyeWide_R", "eyeSquint_L"]
     targets = eyes.EyeTargets(names, NEUTRAL, key_scale=1.0)

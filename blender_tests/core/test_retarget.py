@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from exclone_addon.core.errors import ExCloneError
-from exclone_addon.core.retarget import (SurfaceLocations, WeightSolver, locate_points,
-                                         map_blendshapes, refine_take)
+from exclone_addon.core.library import load_library
+from exclone_addon.core.retarget import (SurfaceLocations, WeightSolver, eye_closures,
+                                         locate_points, map_blendshapes, refine_take)
+from exclone_addon.core.tracker_model import read_tracker_locations
 from blender_tests.helpers.takes import CALIBRATION_FRAMES, ict_rig, synthetic_take, tracked_take
 
 
@@ -71,6 +73,24 @@ def test_an_avatars_units_do_not_change_its_mapped_shapes():
     for unit in (0.01, 10.0):
         np.testing.assert_allclose(map_blendshapes(unit * avatar + 5.0, unit * deltas, actor),
                                    mapped, rtol=1e-6, atol=1e-9)
+
+
+def test_eye_closures_are_read_from_the_avatars_lids():
+    """The ICT library's own keys measured on its mesh as an avatar's (the shipped locations of
+    the tracker's points on it): each eyeBlink closes its own eye (the subject's right first)
+    and not the other, eyeWide opens it wider, an open jaw or a smile leaves the eyes alone."""
+    library = load_library()
+    names = ["eyeBlink_R", "eyeBlink_L", "eyeWide_L", "jawOpen", "mouthSmile_L"]
+    deltas = library.deltas[[list(library.names).index(name) for name in names]]
+    # the whole mesh, eyeballs, lashes and teeth with the skin, as a one-mesh avatar's
+    closures = eye_closures(library.mesh.vertices, library.mesh.triangles(), deltas,
+                            read_tracker_locations())
+    print("\n" + ", ".join(f"{name} {right:.2f} / {left:.2f}"
+                            for name, (right, left) in zip(names, closures)))
+    assert closures[0, 0] > 0.9 and closures[1, 1] > 0.9
+    assert abs(closures[0, 1]) < 0.05 and abs(closures[1, 0]) < 0.05
+    assert closures[2, 1] < -0.1 and abs(closures[2, 0]) < 0.05
+    assert np.all(np.abs(closures[3:]) < 0.1)
 
 
 def test_weight_solver_known_weights_and_bounds():

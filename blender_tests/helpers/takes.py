@@ -371,6 +371,16 @@ def largest_false_weight(take, tracked, only="", but=None):
     return float(weights[k, j]), take.names[keys[j]]
 
 
+def assert_pose_as_measured(take, tracked, most_median, most_max, slope_range):
+    """The rotation error (pose_errors) within a median and a max (degrees), each axis the head
+    turns about read at a slope within slope_range (low, high)."""
+    errors, slopes = pose_errors(take, tracked)
+    assert np.median(errors) <= most_median and errors.max() <= most_max, (np.median(errors),
+                                                                           errors.max())
+    turned = np.isfinite(slopes)
+    assert np.all((slopes[turned] >= slope_range[0]) & (slopes[turned] <= slope_range[1])), slopes
+
+
 def pose_errors(take, tracked):
     """Head-rotation errors after calibration: (per-frame error in degrees (T,), per-axis slope
     of the estimated against the true turn (x pitch, y yaw, z roll, camera axes)).

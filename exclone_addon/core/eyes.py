@@ -64,6 +64,11 @@ EYE_LOOK_FULL_DEG = 30.0
 # 0.27 -> 0.40, so these read them at a low gain (docs/method.md §10).
 LID_CHANGES = (("eyeBlink", -0.45, 0.10), ("eyeWide", 0.30, 0.0), ("eyeSquint", 0.0, 0.25),
                ("eyeLookUp", 0.15, 0.0), ("eyeLookDown", -0.15, 0.0))
+# A key that closes at least this share of an eye's opening on the avatar (retarget.
+# eye_closures) is that eye's blink when the avatar has none of the ARKit keys for its lids (a
+# character's own keys, VRM's Blink_L): its lid rows are eyeBlink's above times its closure.
+# Keys that only narrow the eye (a squint, a frown pulling the lid) close far less of it.
+CLOSING_SHARE = 0.5
 # The eyes are closing when their mean opening is below this fraction of the neutral one: their
 # irises are not read then. Both eyes are taken together: the first and last frames of a blink
 # read about 0.6-0.75 (the closing lids hide the iris and the model guesses it), looking down
@@ -336,12 +341,15 @@ def conjugate_gaze(reading, neutral):
 class EyeTargets:
     """The eyes' rows of the weight solve for an avatar's keys (names) and the actor's neutral
     eyes; key_scale: the mean squared landmark norm of a key in the solve (WeightSolver.scale).
-    Rows exist for the ARKit keys the avatar has (eyeBlink, eyeWide, eyeSquint, eyeLook*)."""
+    Rows exist for the ARKit keys the avatar has (eyeBlink, eyeWide, eyeSquint, eyeLook*), and
+    for an eye with none of the lids' keys, for the keys that close it (closures (N, 2): each
+    key's share of each eye's opening it closes on the avatar, retarget.eye_closures)."""
 
-    def __init__(self, names, neutral, key_scale):
+    def __init__(self, names, neutral, key_scale, closures=None):
         self.neutral = neutral
         self._row_weight = np.sqrt(EYE_TRUST * key_scale)
-        self._rows = [_eye_rows(names, side) for side in SIDES]
+        self._rows = [_eye_rows(names, side, None if closures is None else closures[:, k])
+                      for k, side in enumerate(SIDES)]
         # (N,) whether each key is one the rows read (the session solves the others without them)
         self.keys = np.zeros(len(names), dtype=bool)
         for row in (row for eye_rows in self._rows for row in eye_rows if row is not None):
@@ -373,14 +381,16 @@ class EyeTargets:
         return self._row_weight * np.array(rows), self._row_weight * np.array(targets)
 
 
-def _eye_rows(names, side):
+def _eye_rows(names, side, closures=None):
     """(upper-lid row, lower-lid row, yaw row, pitch row, yaw's size row, pitch's size row) of
     one eye over the keys, each (N,) or None when the avatar lacks all of its keys (LID_CHANGES;
     yaw towards the subject's left: the left eye looks out, the right one in; pitch up). The
     size rows hold each pair's sum to the turn's size, as ARKit's keys read (an eye does not
     look in and out at once): a pair whose keys move the face's points about alike and
     opposite (a character's cloned eyeLook keys: their sum moves them by a fifth of either)
-    would otherwise rise together, unseen by the turn's row, to follow the points' noise."""
+    would otherwise rise together, unseen by the turn's row, to follow the points' noise.
+    Without the lids' ARKit keys, the lid rows are the closing keys' (closures (N,), this eye's:
+    CLOSING_SHARE)."""
     index = {name: j for j, name in enumerate(names)}
 
     def row(coefficients):
@@ -393,8 +403,15 @@ def _eye_rows(names, side):
         return values
 
     outwards, inwards = ("eyeLookOut", "eyeLookIn") if side == "_L" else ("eyeLookIn", "eyeLookOut")
-    return (row([(key, up) for key, up, _ in LID_CHANGES]),
-            row([(key, down) for key, _, down in LID_CHANGES]),
+    upper, lower = (row([(key, up) for key, up, _ in LID_CHANGES]),
+                    row([(key, down) for key, _, down in LID_CHANGES]))
+    if upper is None and lower is None and closures is not None:
+        closing = np.where(np.nan_to_num(closures) >= CLOSING_SHARE, closures, 0.0)
+        if closing.any():
+            blink_up, blink_down = next(change[1:] for change in LID_CHANGES
+                                        if change[0] == "eyeBlink")
+            upper, lower = blink_up * closing, blink_down * closing
+    return (upper, lower,
             row([(outwards, 1.0), (inwards, -1.0)]),
             row([("eyeLookUp", 1.0), ("eyeLookDown", -1.0)]),
             row([(outwards, 1.0), (inwards, 1.0)]),

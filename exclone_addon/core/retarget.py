@@ -15,6 +15,8 @@ from scipy.optimize import lsq_linear, nnls
 from . import character, data
 from .cloning import clone_expressions
 from .errors import ExCloneError
+from .expression_measures import Openings
+from .face_finding import FACEMESH_LANDMARKS
 from .mesh import MeshError, PolyMesh, vertex_parts
 from .proximity import TriangleSurface
 
@@ -95,14 +97,18 @@ BVLS_TOLERANCE = 1e-10
 @dataclass
 class AvatarRig:
     """The avatar's side of retargeting: its shape keys sampled where the tracker's 468 points
-    lie on it (sparse blendshapes)."""
+    lie on it (sparse blendshapes), and how far each closes the avatar's eyes."""
     names: list
     neutral: np.ndarray        # (468, 3) the located points on the avatar's neutral
     deltas: np.ndarray         # (N, 468, 3) each shape key's displacement there
     locations: SurfaceLocations
+    # (N, 2) each key's share of each eye's opening it closes (eye_closures), None: not measured
+    closures: np.ndarray = None
 
     @classmethod
-    def from_locations(cls, vertices, deltas, names, locations):
+    def from_locations(cls, vertices, deltas, names, locations, triangles=None):
+        """The rig of an avatar whose tracker's points are located; with its `triangles`, the
+        keys' eye closures are measured too."""
         vertices = np.asarray(vertices, dtype=np.float64)
         deltas = np.asarray(deltas, dtype=np.float64)
         if len(names) == 0 or deltas.ndim != 3 or len(deltas) == 0:
@@ -120,7 +126,9 @@ class AvatarRig:
         # eyeball) cannot be read from them: solved, it would follow their noise to full
         # weight. It is kept at zero as a key that moves none of them (WeightSolver's ridge).
         sparse[motion < UNSEEN_MOTION * motion.max()] = 0.0
-        return cls(list(names), neutral, sparse, locations)
+        closures = None if triangles is None else eye_closures(vertices, triangles, deltas,
+                                                               locations)
+        return cls(list(names), neutral, sparse, locations, closures)
 
     @classmethod
     def from_arrays(cls, vertices, triangles, deltas, names, progress=None):
@@ -134,7 +142,36 @@ class AvatarRig:
             locations, _ = locate_canonical_face(data.canonical_face(), mesh, progress=progress)
         except (MeshError, np.linalg.LinAlgError) as exc:
             raise ExCloneError(f"the tracker's face does not register onto the avatar ({exc})") from exc
-        return cls.from_locations(vertices, deltas, names, locations)
+        return cls.from_locations(vertices, deltas, names, locations, triangles)
+
+
+# The eyes in the eye reading's order (core.eyes.SIDES: the subject's right, then left), as
+# expression_measures.Openings names them.
+READING_EYES = ("eye_right", "eye_left")
+
+
+def eye_closures(vertices, triangles, deltas, locations):
+    """(N, 2) how much of each eye's opening (READING_EYES) each key (deltas (N, n, 3)) closes on
+    the avatar: one less the median along the lid of its gap against the gap at rest (1 closed,
+    0 as at rest, < 0 wider; the median, as a corner found a little off the opening measures
+    skin beyond it that no blink closes), the lids' edges as seen from the front
+    (expression_measures.Openings, found from the project's landmarks at the located FaceMesh
+    points, on the part of the mesh they are located on: not the eyeballs or lashes of a
+    one-mesh avatar); NaN for an eye whose lids are not found. Whatever the keys are named, the
+    eye reading can then close the eyes they close (core.eyes.EyeTargets)."""
+    vertices, triangles = np.asarray(vertices, dtype=np.float64), np.asarray(triangles)
+    parts = vertex_parts(len(vertices), triangles)
+    skin = triangles[parts[triangles[:, 0]] == np.bincount(parts[locations.corners[:, 0]]).argmax()]
+    landmarks = {name: int(locations.corners[i, np.argmax(locations.bary[i])])
+                 for name, i in FACEMESH_LANDMARKS.items() if name in Openings.NEEDED}
+    openings = Openings(vertices, skin, landmarks)
+    closures = np.full((len(deltas), len(READING_EYES)), np.nan)
+    for k, eye in enumerate(READING_EYES):
+        lids = openings.lids.get(eye)
+        if lids is not None:
+            closures[:, k] = [1.0 - np.median(lids.gaps(vertices + delta) / lids.rest)
+                              for delta in deltas]
+    return closures
 
 
 def map_blendshapes(avatar_neutral, avatar_deltas, actor_neutral, kernel="thin_plate_spline",

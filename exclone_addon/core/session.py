@@ -631,7 +631,7 @@ class FaceTrackingSession:
             mapped = map_blendshapes(self.avatar.neutral, self.avatar.deltas, neutral)
             self.solver = WeightSolver(mapped, self.avatar.names)
             self._eye_targets = None if self.eye_neutral is None else eyes.EyeTargets(
-                self.avatar.names, self.eye_neutral, self.solver.scale)
+                self.avatar.names, self.eye_neutral, self.solver.scale, self.avatar.closures)
             self._appearance_map = None
             if self._neutral_reading is not None:     # read (appearance not False)
                 self._appearance_map = (load_appearance_map() if self._appearance is True

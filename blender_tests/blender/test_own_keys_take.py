@@ -1,0 +1,147 @@
+"""Tracking through the image models onto a character that carries its own keys: the MakeHuman
+child (../shared/data/characters/mh_child_body_expr.blend) with MakeHuman's ten expression units
+(eye closures, an open mouth, a smile, brows up and down, a pucker; no ARKit name among them),
+rendered wearing them with known weights and a known head turn (helpers.character_takes.
+rendered_own_keys_take), tracked frame by frame by FaceTrackingSession.step onto the same
+character as a user's avatar, so the ideal answer is the truth. Nothing here is ARKit: the eyes'
+reading reaches the keys through what they do to the avatar's lids (retarget.eye_closures,
+eyes.EyeTargets), the rest through the points and the appearance map's motion. Figures
+measured, checked with a margin; the issue's targets as strict expected failures where they are
+not met."""
+import numpy as np
+import pytest
+
+from blender_tests.helpers.character_takes import (own_keys_character, rendered_own_keys_take,
+                                                   tracked_take_fixtures)
+from blender_tests.helpers.takes import (assert_pose_as_measured, largest_false_weight,
+                                         pose_errors)
+
+CLOSING = ("eye-right-closure", "eye-left-closure")     # the subject's right eye, then the left
+moving, still, turning = tracked_take_fixtures(rendered_own_keys_take)
+
+
+def test_the_characters_closing_keys_are_measured(shared_data):
+    """Each eye closure closes its own eye on the body (the lids found as Clone finds them) and
+    nothing else closes either: measured 1.08 and 1.01, the others within 0.02."""
+    rig = own_keys_character().rig
+    closures = rig.closures
+    for eye, name in enumerate(CLOSING):
+        j = rig.names.index(name)
+        assert closures[j, eye] > 0.9 and abs(closures[j, 1 - eye]) < 0.05, closures[j]
+    others = [j for j, name in enumerate(rig.names) if name not in CLOSING]
+    assert np.all(np.abs(closures[others]) < 0.1), closures[others]
+
+
+def _after_calibration(take, tracked):
+    frames = slice(take.calibration_frames, None)
+    return take.truth[frames], tracked.weights[frames]
+
+
+def _bumps(truth):
+    """[(first, stop)] of each run of frames where `truth` (T,) is above zero."""
+    edges = np.diff(np.concatenate(([0], (truth > 0).astype(int), [0])))
+    return list(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)))
+
+
+@pytest.mark.parametrize("take_name", ["moving", "still"])
+def test_every_closure_is_found_and_none_is_false(take_name, request):
+    """Each eye closure's every bump reads above 0.5 at its peak (measured 1.00: the closed eyes
+    read beyond eyeBlink's reading, at 1.2-1.4 times the truth), and no frame where it is zero
+    reads above 0.5 (measured: moving 0.42 and 0.48, with the head pitched down; still 0.10).
+    Before the closures were measured, neither key ever rose above 0.01."""
+    take, tracked = request.getfixturevalue(take_name)
+    truth, weights = _after_calibration(take, tracked)
+    for name in CLOSING:
+        j = take.names.index(name)
+        for first, stop in _bumps(truth[:, j]):
+            assert np.nanmax(weights[first:stop, j]) > 0.5, (name, first, weights[first:stop, j])
+        assert np.nanmax(weights[truth[:, j] == 0, j]) < 0.5, name
+
+
+def _figures(take, tracked):
+    """Per key (correlation, mean absolute error, gain: the slope of the weight on the truth)."""
+    truth, weights = _after_calibration(take, tracked)
+    seen = np.all(np.isfinite(weights), axis=1)
+    truth, weights = truth[seen], weights[seen]
+    return {name: (np.corrcoef(weights[:, j], truth[:, j])[0, 1],
+                   np.abs(weights[:, j] - truth[:, j]).mean(),
+                   np.polyfit(truth[:, j], weights[:, j], 1)[0])
+            for j, name in enumerate(take.names)}
+
+
+def _text(figures):
+    return ", ".join(f"{name} {c:.2f} (gain {g:.2f})" for name, (c, _, g) in figures.items())
+
+
+# Measured (mean correlation over the ten keys, MAE, the median gain): the head moving 0.741,
+# 0.080, 0.26 (the lowest the brows 0.59, the open mouth 0.68 at a gain of 0.20); still 0.888,
+# 0.053, 0.45 (the lowest the frown 0.76). Besides the eyes and the smile the keys read at a
+# tenth to a third of their size: the appearance map, learnt on ICT heads, reads this face's
+# open mouth and frown as little of ICT's, and the points cannot tell more than that.
+MEASURED_WEIGHTS = {"moving": (0.71, 0.085, 0.22), "still": (0.86, 0.06, 0.40)}
+
+
+@pytest.mark.parametrize("take_name", sorted(MEASURED_WEIGHTS))
+def test_own_keys_follow_the_face_as_measured(take_name, request):
+    figures = _figures(*request.getfixturevalue(take_name))
+    correlations, errors, gains = np.array(list(figures.values())).T
+    least_mean, most_mae, least_gain = MEASURED_WEIGHTS[take_name]
+    assert correlations.mean() >= least_mean and errors.mean() <= most_mae, _text(figures)
+    assert np.median(gains) >= least_gain, _text(figures)
+
+
+def test_own_keys_reach_the_target_with_the_head_still(still):
+    """The issue's figures with the head still (though most keys read at a fraction of their
+    size: see MEASURED_WEIGHTS)."""
+    figures = _figures(*still)
+    correlations, errors, _ = np.array(list(figures.values())).T
+    assert correlations.mean() >= 0.85 and correlations.min() >= 0.7 and errors.mean() <= 0.08, \
+        _text(figures)
+
+
+@pytest.mark.xfail(strict=True, reason="measured: 0.741 with the head moving (the brows 0.59, "
+                                       "the open mouth 0.68, the frown 0.62), MAE 0.080")
+def test_own_keys_reach_the_target_with_the_head_moving(moving):
+    figures = _figures(*moving)
+    correlations, errors, _ = np.array(list(figures.values())).T
+    assert correlations.mean() >= 0.85 and correlations.min() >= 0.7 and errors.mean() <= 0.08, \
+        _text(figures)
+
+
+# Measured (median, max rotation error in degrees; slopes pitch, yaw): moving 5.07, 10.29 (1.29,
+# 1.19); the neutral face turning 5.08, 10.67 (1.23, 1.17). The turn reads a fifth to a quarter
+# too large: this face's proportions are a child's, further from the ICT heads the tracker
+# model was learnt from than the MakeHuman man's (test_character_take: 1.11, 1.12).
+MEASURED_POSE = {"moving": (5.4, 10.8), "turning": (5.4, 11.2)}
+SLOPE_RANGE = (0.95, 1.35)
+
+
+@pytest.mark.parametrize("take_name", sorted(MEASURED_POSE))
+def test_head_rotation_as_measured(take_name, request):
+    assert_pose_as_measured(*request.getfixturevalue(take_name), *MEASURED_POSE[take_name],
+                            SLOPE_RANGE)
+
+
+@pytest.mark.xfail(strict=True, reason="measured: median 5.07 deg, max 10.29 deg, pitch and yaw "
+                                       "at 1.29 and 1.19 of their size (see MEASURED_POSE)")
+def test_head_rotation_reaches_the_target(moving):
+    errors, slopes = pose_errors(*moving)
+    assert np.median(errors) <= 1.5 and errors.max() <= 3.0
+
+
+# Measured on the neutral face turning up to 30 deg: the closures 0.54 (the head pitched down
+# by 10-20 deg: both eyes read as half closed, 0.3-0.42 for a second and more), the other keys
+# 0.21 (eyebrows-right-up). Checked with a margin.
+MEASURED_FALSE_WEIGHT = {"eye": 0.6, "others": 0.25}
+
+
+def test_a_turning_neutral_face_as_measured(turning):
+    found = {"eye": largest_false_weight(*turning, only="eye"),
+             "others": largest_false_weight(*turning, but="eye")}
+    assert all(found[keys][0] <= most for keys, most in MEASURED_FALSE_WEIGHT.items()), found
+
+
+@pytest.mark.xfail(strict=True, reason="measured: 0.54 (eye-left-closure, the head pitched "
+                                       "down), the other keys 0.21")
+def test_a_turning_neutral_face_makes_no_expression(turning):
+    assert largest_false_weight(*turning)[0] <= 0.15
