@@ -25,7 +25,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import data, eyes, face_models, threads
-from .appearance import FaceFrontaliser, load_appearance_map, turn_between
+from .appearance import MOTION_SHARE, FaceFrontaliser, load_appearance_map, turn_between
 from .eyes import EyeGeometry
 from .errors import ExCloneError
 from .material_points import MaterialPoints
@@ -599,9 +599,11 @@ class FaceTrackingSession:
             values[self._other_keys] = from_points
             return values, displacement
         # with the appearance: a key it reads by name takes its weight and the points' at its
-        # share; the others follow its expression (its keys' motion) and the points' alike
+        # share; the others follow its expression (its keys' motion) and the points' (at
+        # MOTION_SHARE)
         share = self._appearance_map.share
-        blended = share * self._appearance_map.motion_of(read) + (1.0 - share) * displacement
+        blended = (MOTION_SHARE * self._appearance_map.motion_of(read)
+                   + (1.0 - MOTION_SHARE) * displacement)
         others = self._other_solver.solve(blended)
         for key, columns in self._read_by_name:
             others[key] = share * read[columns].mean() + (1.0 - share) * from_points[key]
