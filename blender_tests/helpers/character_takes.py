@@ -168,7 +168,9 @@ def _rendered(character, file_name, kind, truth, angles):
     vertices = np.vstack([vertices for _, vertices, _, _ in character.meshes])
     deltas = np.concatenate([[keys.get(name, np.zeros_like(v)) for name in names]
                              for _, v, _, keys in character.meshes], axis=1)
-    digest = hashlib.sha1(vertices.tobytes() + deltas.tobytes()).hexdigest()[:12]
+    # the key holds everything the frames are made of: a recipe changed renders them again
+    digest = hashlib.sha1(b"".join(np.ascontiguousarray(part).tobytes() for part in (
+        vertices, deltas, truth, rotations.as_quat()))).hexdigest()[:12]
     key = f"{file_name}-{kind}-{len(truth)}-{IMAGE_SIZE}-{RENDER_DISTANCE_CM}-{digest}"
     paths, seconds = cached_frames(
         CHARACTER_CACHE / hashlib.sha1(key.encode()).hexdigest()[:16], len(truth),
