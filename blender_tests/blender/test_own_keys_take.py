@@ -8,11 +8,15 @@ reading reaches the keys through what they do to the avatar's lids (retarget.eye
 eyes.EyeTargets), the rest through the points and the appearance map's motion. Figures
 measured, checked with a margin; the issue's targets as strict expected failures where they are
 not met."""
+import bpy
 import numpy as np
 import pytest
 
-from blender_tests.helpers.character_takes import (own_keys_character, rendered_own_keys_take,
-                                                   tracked_take_fixtures)
+from exclone_addon.core import capture
+from blender_tests.helpers.animation import keyframes
+from blender_tests.helpers.character_files import load_into_scene
+from blender_tests.helpers.character_takes import (OWN_KEYS_CHARACTER, own_keys_character,
+                                                   rendered_own_keys_take, tracked_take_fixtures)
 from blender_tests.helpers.takes import (assert_pose_as_measured, largest_false_weight,
                                          pose_errors)
 
@@ -30,6 +34,34 @@ def test_the_characters_closing_keys_are_measured(shared_data):
         assert closures[j, eye] > 0.9 and abs(closures[j, 1 - eye]) < 0.05, closures[j]
     others = [j for j, name in enumerate(rig.names) if name not in CLOSING]
     assert np.all(np.abs(closures[others]) < 0.1), closures[others]
+
+
+def test_drive_from_webcam_blinks_the_characters_own_keys(shared_data, tmp_path):
+    """The add-on's path: the still take's frames as an image folder, Drive from Webcam onto the
+    child's Body (every key) recording keyframes. Each eye closure is keyed above 0.5 at each of
+    its bumps and below it wherever it is zero (the closures measured by the add-on's rig)."""
+    take = rendered_own_keys_take("still")
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for k, path in enumerate(take.frames):
+        (folder / f"{k:04d}.png").symlink_to(path)
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    body = load_into_scene(shared_data / "characters" / OWN_KEYS_CHARACTER)["Body"]
+    bpy.context.view_layer.objects.active = body
+    assert bpy.ops.exclone.drive_from_webcam(source_type='FOLDER', filepath=str(folder),
+                                             record=True) == {'FINISHED'}
+    keyed = keyframes(body.data.shape_keys)
+    fps = bpy.context.scene.render.fps
+    for name in CLOSING:
+        values = dict(keyed[f'key_blocks["{name}"].value'])
+        truth = take.truth[:, take.names.index(name)]
+        # each image's key (the calibration's images have none: NaN)
+        at = np.array([values.get(1 + round(k / capture.FOLDER_FRAME_RATE * fps), np.nan)
+                       for k in range(len(truth))])
+        assert np.all(np.isfinite(at[take.calibration_frames:]))
+        for first, stop in _bumps(truth):
+            assert at[first:stop].max() > 0.5, (name, first, at[first:stop])
+        assert np.nanmax(at[truth == 0]) < 0.5, name
 
 
 def _after_calibration(take, tracked):
