@@ -371,6 +371,15 @@ def largest_false_weight(take, tracked, only="", but=None):
     return float(weights[k, j]), take.names[keys[j]]
 
 
+# The issue's head-rotation target: the error's median and max (degrees), every axis the head
+# turns about read within 5% of its size.
+ROTATION_TARGET = (1.5, 3.0, (0.95, 1.05))
+
+
+def assert_pose_reaches_target(take, tracked):
+    assert_pose_as_measured(take, tracked, *ROTATION_TARGET)
+
+
 def assert_pose_as_measured(take, tracked, most_median, most_max, slope_range):
     """The rotation error (pose_errors) within a median and a max (degrees), each axis the head
     turns about read at a slope within slope_range (low, high)."""

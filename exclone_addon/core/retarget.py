@@ -72,12 +72,17 @@ def locate_canonical_face(canonical, avatar, avatar_triangles=None, settings=Non
     head = face.head.mesh
     points = _registered(canonical, head, face.guide, settings, progress)
     triangles = head.triangles()
-    parts = vertex_parts(len(head.vertices), triangles)
     first, _ = locate_points(points, head.vertices, triangles)
-    skin = np.bincount(parts[first.corners[:, 0]]).argmax()
-    located, distances = locate_points(points, head.vertices,
-                                       triangles[parts[triangles[:, 0]] == skin])
+    located, distances = locate_points(
+        points, head.vertices, _part_of_most(len(head.vertices), triangles, first.corners[:, 0]))
     return SurfaceLocations(face.head.own_ids(located.corners), located.bary), distances
+
+
+def _part_of_most(vertex_count, triangles, vertex_ids):
+    """The triangles of the connected part of the mesh that most of `vertex_ids` lie on: the
+    located face's skin, not the eyeballs, lashes or teeth beside it."""
+    parts = vertex_parts(vertex_count, triangles)
+    return triangles[parts[triangles[:, 0]] == np.bincount(parts[vertex_ids]).argmax()]
 
 
 def _registered(canonical, target, face_guide, settings, progress):
@@ -159,9 +164,8 @@ def eye_closures(vertices, triangles, deltas, locations):
     points, on the part of the mesh they are located on: not the eyeballs or lashes of a
     one-mesh avatar); NaN for an eye whose lids are not found. Whatever the keys are named, the
     eye reading can then close the eyes they close (core.eyes.EyeTargets)."""
-    vertices, triangles = np.asarray(vertices, dtype=np.float64), np.asarray(triangles)
-    parts = vertex_parts(len(vertices), triangles)
-    skin = triangles[parts[triangles[:, 0]] == np.bincount(parts[locations.corners[:, 0]]).argmax()]
+    vertices = np.asarray(vertices, dtype=np.float64)
+    skin = _part_of_most(len(vertices), np.asarray(triangles), locations.corners[:, 0])
     landmarks = {name: int(locations.corners[i, np.argmax(locations.bary[i])])
                  for name, i in FACEMESH_LANDMARKS.items() if name in Openings.NEEDED}
     openings = Openings(vertices, skin, landmarks)
