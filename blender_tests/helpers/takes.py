@@ -304,6 +304,32 @@ def ict_avatar(take):
     return AvatarRig.from_locations(take.vertices, take.deltas, take.names, read_tracker_locations())
 
 
+# A webcam's frames: sensor noise of this standard deviation (of 255; each pixel's and frame's
+# own, as a dim room's webcam gives), then MJPEG compression at this quality.
+WEBCAM_NOISE = 10.0
+WEBCAM_JPEG_QUALITY = 80
+
+
+def through_a_webcam(take, noise=WEBCAM_NOISE, quality=WEBCAM_JPEG_QUALITY, seed=0):
+    """The take with its rendered frames as a webcam would deliver them (noise, then JPEG),
+    cached beside them."""
+    source = take.frames[0].parent
+    key = hashlib.sha1(f"{source.name}-{noise}-{quality}-{seed}".encode()).hexdigest()[:16]
+
+    def degrade(paths):
+        rng = np.random.default_rng(seed)
+        for frame, path in zip(take.frames, paths):
+            image = cv2.imread(str(frame)).astype(np.float64)
+            noisy = np.clip(np.rint(image + rng.normal(0.0, noise, image.shape)), 0, 255)
+            _, jpeg = cv2.imencode(".jpg", noisy.astype(np.uint8),
+                                   [cv2.IMWRITE_JPEG_QUALITY, quality])
+            cv2.imwrite(str(path), cv2.imdecode(jpeg, cv2.IMREAD_COLOR))
+        return 0.0
+
+    paths, _ = cached_frames(RENDER_CACHE / f"webcam-{key}", len(take.frames), degrade)
+    return SimpleNamespace(**{**vars(take), "frames": paths})
+
+
 def track_rendered(take, avatar=None, tracker_model=None, appearance=True):
     """The take's frames through FaceTrackingSession.step (what a camera feeds): weights by
     library key (T, E; NaN before calibration or without a face), model -> camera rotations
