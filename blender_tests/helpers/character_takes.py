@@ -45,14 +45,14 @@ def cloned_character(file_name=CHARACTER, shapes=None):
     points located on the body as a take locates them on an avatar), with the located points in
     model space."""
     import batch_clone
-    folder = Path(tempfile.mkdtemp(prefix="exclone_character_"))
-    out = folder / "character.blend"
-    code = batch_clone.main(["--target", str(SHARED_DATA / "characters" / file_name),
-                             "--no-preview", "--out", str(out)]
-                            + (["--shapes", shapes] if shapes else []))
-    if code != 0:
-        raise RuntimeError(f"batch_clone exited with {code}")
-    return _read_character(out)
+    with tempfile.TemporaryDirectory(prefix="exclone_character_") as folder:
+        out = Path(folder) / "character.blend"
+        code = batch_clone.main(["--target", str(SHARED_DATA / "characters" / file_name),
+                                 "--no-preview", "--out", str(out)]
+                                + (["--shapes", shapes] if shapes else []))
+        if code != 0:
+            raise RuntimeError(f"batch_clone exited with {code}")
+        return _read_character(out)
 
 
 @functools.lru_cache(maxsize=1)
