@@ -254,6 +254,10 @@ class FaceTrackingSession:
             "translation": OneEuroFilter(min_cutoff=1.0, beta=2.0),
             "params": OneEuroFilter(min_cutoff=2.0, beta=5.0),
             "landmarks": LandmarkFilter(min_cutoff=1.5, beta=0.05),
+            # the appearance map's weights (weight units/s): each frame's image brings its own
+            # sensor noise into them, which the points' filters do not see (3 Hz at rest: a
+            # webcam's take 0.910 -> 0.928, the clean takes within 0.003; docs/method.md §12)
+            "appearance": OneEuroFilter(min_cutoff=3.0, beta=5.0),
         }
 
     def _use_image_size(self, width, height, name):
@@ -506,6 +510,8 @@ class FaceTrackingSession:
                                                     self.expression_displacement,
                                                     turn_between(self.neutral_rotation,
                                                                  pose.rotation))
+                if not self.still_images:
+                    read = self._filters["appearance"](read, timestamp)
                 # the turn less what the expression made the fit read into it
                 pose = replace(pose, rotation=self._appearance_map.unbiased_turn(pose.rotation,
                                                                                  read))
