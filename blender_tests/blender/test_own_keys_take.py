@@ -105,9 +105,11 @@ def _text(figures):
     return ", ".join(f"{name} {c:.2f} (gain {g:.2f})" for name, (c, _, g) in figures.items())
 
 
-# Measured (mean correlation over the ten keys, MAE, the median gain): the head moving 0.820,
-# 0.075, 0.28 (the lowest eyebrows-left-up 0.66, the open mouth 0.71 at a gain of 0.20); still
-# 0.935, 0.051, 0.44 (the lowest the frown 0.81). With the appearance map's motion at its learnt
+# Measured (mean correlation over the ten keys, MAE, the median gain): the head moving 0.823,
+# 0.076, 0.27 (the lowest eyebrows-left-up 0.66, the open mouth 0.70 at a gain of 0.20); still
+# 0.940, 0.051, 0.44 (the lowest the frown 0.80). Before the appearance's grid read a smoothed
+# image and its weights were filtered over time (stop 39): 0.820 and 0.935. With the appearance
+# map's motion at its learnt
 # share (1, before appearance.MOTION_SHARE) 0.741 and 0.888. Besides the eyes and the smile the
 # keys read at a tenth to a third of their size: the appearance map, learnt on ICT heads, reads
 # this face's open mouth and frown as little of ICT's.
@@ -132,8 +134,8 @@ def test_own_keys_reach_the_target_with_the_head_still(still):
         _text(figures)
 
 
-@pytest.mark.xfail(strict=True, reason="measured: 0.820 with the head moving (eyebrows-left-up "
-                                       "0.66, the open mouth 0.71), MAE 0.075")
+@pytest.mark.xfail(strict=True, reason="measured: 0.823 with the head moving (eyebrows-left-up "
+                                       "0.66, the open mouth 0.70), MAE 0.076")
 def test_own_keys_reach_the_target_with_the_head_moving(moving):
     figures = _figures(*moving)
     correlations, errors, _ = np.array(list(figures.values())).T
@@ -141,8 +143,8 @@ def test_own_keys_reach_the_target_with_the_head_moving(moving):
         _text(figures)
 
 
-# Measured (median, max rotation error in degrees; slopes pitch, yaw): moving 5.07, 10.29 (1.29,
-# 1.19); the neutral face turning 5.08, 10.67 (1.23, 1.17). The turn reads a fifth to a quarter
+# Measured (median, max rotation error in degrees; slopes pitch, yaw): moving 5.08, 10.26 (1.29,
+# 1.19); the neutral face turning 5.07, 10.74 (1.23, 1.17). The turn reads a fifth to a quarter
 # too large: this face's proportions are a child's, further from the ICT heads the tracker
 # model was learnt from than the MakeHuman man's (test_character_take: 1.11, 1.12).
 MEASURED_POSE = {"moving": (5.4, 10.8), "turning": (5.4, 11.2)}
@@ -155,7 +157,7 @@ def test_head_rotation_as_measured(take_name, request):
                             SLOPE_RANGE)
 
 
-@pytest.mark.xfail(strict=True, reason="measured: median 5.07 deg, max 10.29 deg, pitch and yaw "
+@pytest.mark.xfail(strict=True, reason="measured: median 5.08 deg, max 10.26 deg, pitch and yaw "
                                        "at 1.29 and 1.19 of their size (see MEASURED_POSE)")
 def test_head_rotation_reaches_the_target(moving):
     assert_pose_reaches_target(*moving)
@@ -163,8 +165,8 @@ def test_head_rotation_reaches_the_target(moving):
 
 # Measured on the neutral face turning up to 30 deg: the closures 0.51 (the head pitched down
 # by 10-20 deg: both eyes read as half closed, 0.3-0.4 for a second and more), the other keys
-# 0.24 (eyebrows-right-up). Checked with a margin.
-MEASURED_FALSE_WEIGHT = {"eye": 0.56, "others": 0.28}
+# 0.21 (eyebrows-right-up; 0.24 before stop 39's filter). Checked with a margin.
+MEASURED_FALSE_WEIGHT = {"eye": 0.56, "others": 0.25}
 
 
 def test_a_turning_neutral_face_as_measured(turning):
@@ -173,7 +175,7 @@ def test_a_turning_neutral_face_as_measured(turning):
     assert all(found[keys][0] <= most for keys, most in MEASURED_FALSE_WEIGHT.items()), found
 
 
-@pytest.mark.xfail(strict=True, reason="measured: 0.51 (eye-left-closure, the head pitched "
-                                       "down), the other keys 0.24")
+@pytest.mark.xfail(strict=True, reason="measured: 0.51 (eye-right-closure, the head pitched "
+                                       "down), the other keys 0.21")
 def test_a_turning_neutral_face_makes_no_expression(turning):
     assert largest_false_weight(*turning)[0] <= 0.15
