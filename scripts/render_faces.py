@@ -114,10 +114,14 @@ def _eyeball_colours(eyeballs):
 
 class FaceRenderer:
     """A background-Blender scene holding one head mesh and a pinhole camera; render(points)
-    places the head's vertices (camera space, OpenCV axes) and returns the BGR image."""
+    places the head's vertices (camera space, OpenCV axes) and returns the BGR image.
+
+    light_turn: None, the studio light as Workbench lights the view (from the camera's side, as
+    the appearance map's training takes are lit); else the light fixed in the scene and turned
+    this many radians about the vertical (a window to one side)."""
 
     def __init__(self, triangles, colours, image_size=IMAGE_SIZE, focal_px=None, light="STUDIO",
-                 studio_light="Default"):
+                 studio_light="Default", light_turn=None):
         bpy.ops.wm.read_factory_settings(use_empty=True)
         width, height = image_size
         self.image_size = (int(width), int(height))
@@ -141,7 +145,7 @@ class FaceRenderer:
         self.object = bpy.data.objects.new("face", mesh)
         scene.collection.objects.link(self.object)
         self._setup_camera(scene)
-        self._setup_look(scene, light, studio_light)
+        self._setup_look(scene, light, studio_light, light_turn)
 
     def _setup_camera(self, scene):
         width, height = self.image_size
@@ -158,11 +162,14 @@ class FaceRenderer:
         scene.render.resolution_x, scene.render.resolution_y = width, height
         scene.render.resolution_percentage = 100
 
-    def _setup_look(self, scene, light, studio_light):
+    def _setup_look(self, scene, light, studio_light, light_turn):
         scene.render.engine = 'BLENDER_WORKBENCH'
         shading = scene.display.shading
         shading.light = light
         shading.studio_light = studio_light     # one of Workbench's own (STUDIO_LIGHTS)
+        if light_turn is not None:
+            shading.use_world_space_lighting = True
+            shading.studiolight_rotate_z = float(light_turn)
         shading.color_type = 'VERTEX'
         shading.show_specular_highlight = False
         shading.show_cavity = False

@@ -16,10 +16,10 @@ from dataclasses import replace
 
 from exclone_addon.core.tracker_model import load_tracker_model
 
-from blender_tests.helpers.takes import (OTHER_IDENTITY, assert_pose_as_measured,
-                                         assert_pose_reaches_target, largest_false_weight,
-                                         rendered_take, through_a_webcam, track_rendered,
-                                         track_true_points, unit_scores)
+from blender_tests.helpers.takes import (OTHER_IDENTITY, SIDE_LIGHT_TURN,
+                                         assert_pose_as_measured, assert_pose_reaches_target,
+                                         largest_false_weight, rendered_take, through_a_webcam,
+                                         track_rendered, track_true_points, unit_scores)
 
 # Measured with the face's appearance read beside the points (core.appearance, the map learnt
 # from 96 takes of other ICT identities, scripts/make_appearance_model.py, reading the face's
@@ -66,8 +66,14 @@ from blender_tests.helpers.takes import (OTHER_IDENTITY, assert_pose_as_measured
 # (core.session), 0.866, 0.033 (0.46; 0.845, 0.937) before the image was also smoothed for the
 # appearance's grid (core.appearance.GRID_ANTIALIAS). The clean takes now 0.955, 0.024; 0.931,
 # 0.028; 0.973, 0.015.
+# Lit from one side (takes.SIDE_LIGHT_TURN; the appearance map's training takes and every other
+# take here are lit from the camera's side): 0.812, 0.040 (browDown_L 0.11, mouthFrown_R 0.50,
+# mouthStretch_L 0.53); without the appearance 0.485, 0.079 (0.654 lit from the camera's side:
+# FaceMesh's points lose some too). The light turned 0.6 rad instead (from above and aside, half
+# the face in shadow; scratch): 0.591, without the appearance 0.424.
 MEASURED_WEIGHTS = {"moving": (0.93, 0.028), "other_identity": (0.91, 0.031),
-                    "still": (0.96, 0.017), "moving_webcam": (0.915, 0.032)}
+                    "still": (0.96, 0.017), "moving_webcam": (0.915, 0.032),
+                    "moving_side_light": (0.79, 0.043)}
 # The moving take with the appearance not read (the points and the eyes alone), as above: 0.654.
 MEASURED_WITHOUT_APPEARANCE = 0.63
 # Measured (median, max rotation error in degrees; per-axis slopes pitch, yaw, roll), the fit's
@@ -92,7 +98,9 @@ MEASURED_WITHOUT_APPEARANCE = 0.63
 # with FaceMesh's
 # depth, on the same frames: moving 2.23, 6.43, pitch 0.85; turning 2.47, 6.63, pitch 0.85;
 # identity 7: 2.38, 6.62, pitch 0.86.)
-MEASURED_POSE = {"moving": (1.6, 3.2), "turning": (1.5, 3.3), "other_identity": (1.85, 4.3)}
+# Lit from one side: 1.82, 3.82 (1.03, 0.94, 1.04); without the appearance 1.99, 3.77.
+MEASURED_POSE = {"moving": (1.6, 3.2), "turning": (1.5, 3.3), "other_identity": (1.85, 4.3),
+                 "moving_side_light": (2.0, 4.1)}
 SLOPE_RANGE = (0.93, 1.09)
 
 
@@ -125,6 +133,13 @@ def turning_wide():
 def moving_webcam():
     """The moving take's frames as a webcam would deliver them (takes.through_a_webcam)."""
     take = through_a_webcam(rendered_take("moving"))
+    return take, track_rendered(take)
+
+
+@pytest.fixture(scope="module")
+def moving_side_light():
+    """The moving take lit from one side (takes.SIDE_LIGHT_TURN), a light no build step saw."""
+    take = rendered_take("moving", light_turn=SIDE_LIGHT_TURN)
     return take, track_rendered(take)
 
 
@@ -191,7 +206,10 @@ def test_head_rotation_as_measured(take_name, request):
     "moving", "other_identity",
     pytest.param("moving_webcam", marks=pytest.mark.xfail(strict=True, reason=(
         "measured through a webcam: mean 0.928, MAE 0.030, but mouthFrown_R 0.65 (0.46 before "
-        "the appearance's grid read a smoothed image and its weights were filtered over time)")))])
+        "the appearance's grid read a smoothed image and its weights were filtered over time)"))),
+    pytest.param("moving_side_light", marks=pytest.mark.xfail(strict=True, reason=(
+        "measured lit from one side: mean 0.812, MAE 0.040, browDown_L 0.11, mouthFrown_R 0.50, "
+        "mouthStretch_L 0.53: the appearance map learnt only faces lit from the camera's side")))])
 def test_weights_reach_the_target(take_name, request):
     """Measured: mean correlation 0.963, MAE 0.021, every shape at least 0.86 (mouthFrown_R);
     identity 7: 0.937, 0.026, at least 0.71 (mouthStretch_R). With the appearance map's 1,500

@@ -243,18 +243,28 @@ def identity_head(identity):
     return vertices, library.deltas, list(library.names), library.parts
 
 
-def _take_key(kind, identity, frames, seed, calibration="small"):
+def _take_key(kind, identity, frames, seed, calibration="small", light_turn=None):
     text = f"v{RENDER_VERSION}-{kind}-{identity}-{frames}-{seed}-{IMAGE_SIZE}-{RENDER_DISTANCE_CM}"
     if calibration != "small":      # the small calibration's takes keep their cache keys
         text += f"-{calibration}-calibration"
+    if light_turn is not None:      # and those lit from the camera's side
+        text += f"-light-{light_turn}"
     return hashlib.sha1(text.encode()).hexdigest()[:16]
 
 
-def rendered_take(kind="moving", identity=None, frames=None, seed=3, calibration="small"):
+# A light from one side: Workbench's default studio light fixed in the scene and turned 1.2 rad
+# (69 deg) about the vertical, as a window beside the actor lights a face (the appearance map's
+# training takes are lit from the camera's side).
+SIDE_LIGHT_TURN = 1.2
+
+
+def rendered_take(kind="moving", identity=None, frames=None, seed=3, calibration="small",
+                  light_turn=None):
     """A take rendered in background Blender (needs bpy), cached on disk by its parameters:
     frames (list of PNG paths), truth (library-key weights (T, E)), unit weights (T, U), the
     head's model -> camera rotations, translations, the camera, render seconds per frame
-    (CPU time, 0 when read from the cache) and how many of its first frames are calibration's."""
+    (CPU time, 0 when read from the cache) and how many of its first frames are calibration's.
+    light_turn: render_faces.FaceRenderer's (None: lit from the camera's side)."""
     weights, angles = take_recipe(kind, frames, seed, calibration)
     vertices, deltas, names, parts = identity_head(identity)
     truth = np.zeros((len(weights), len(names)))
@@ -265,9 +275,10 @@ def rendered_take(kind="moving", identity=None, frames=None, seed=3, calibration
     centre = locations.sample(vertices).mean(axis=0)
     translation = np.array([0.0, 0.0, RENDER_DISTANCE_CM])
     paths, seconds = cached_frames(
-        RENDER_CACHE / _take_key(kind, identity, len(weights), seed, calibration), len(weights),
+        RENDER_CACHE / _take_key(kind, identity, len(weights), seed, calibration, light_turn),
+        len(weights),
         lambda paths: _render_take(paths, vertices, deltas, parts, truth, rotations, translation,
-                                   centre, locations))
+                                   centre, locations, light_turn))
     return SimpleNamespace(frames=paths, truth=truth, unit_weights=weights, names=names,
                            rotations=rotations, translation=translation, kind=kind,
                            camera=Camera.from_image_size(*IMAGE_SIZE), render_s=seconds,
@@ -276,12 +287,13 @@ def rendered_take(kind="moving", identity=None, frames=None, seed=3, calibration
 
 
 def _render_take(paths, vertices, deltas, parts, truth, rotations, translation, centre,
-                 locations):
+                 locations, light_turn):
     """Renders every frame to `paths`; returns the CPU seconds per frame."""
     import render_faces      # needs bpy: imported only when a take is rendered
     colours = render_faces.vertex_colours(vertices, parts, locations.sample(vertices))
     renderer = render_faces.FaceRenderer(
-        render_faces.rendered_triangles(load_library().mesh.triangles(), parts), colours, IMAGE_SIZE)
+        render_faces.rendered_triangles(load_library().mesh.triangles(), parts), colours,
+        IMAGE_SIZE, light_turn=light_turn)
     return render_frames(renderer, paths, vertices, deltas, truth, rotations, translation, centre)
 
 
