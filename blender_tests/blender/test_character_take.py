@@ -49,9 +49,9 @@ def _figures(take, tracked):
 # lowest browDown_L -0.11, mouthFrown_R 0.33, browInnerUp 0.40); still 0.936, 0.022 (the lowest
 # browDown_L 0.61, browDown_R 0.85). Before the appearance's grid read a smoothed image and its
 # weights were filtered over time (stop 39): 0.704, 0.047 (read at a median 0.33 of their size);
-# 0.930, 0.021. Without the face's appearance, moving: 0.436, 0.092. After a wide calibration (helpers.takes, "wide"), moving:
-# 0.728, 0.042. On the ICT heads the moving takes read 0.93-0.95: here the head's motion costs
-# the most (the rotation below).
+# 0.930, 0.021. Without the face's appearance, moving: 0.436, 0.092. After a wide calibration
+# (helpers.takes, "wide"), moving: 0.728, 0.042. On the ICT heads the moving takes read 0.93-0.95:
+# here the head's motion costs the most (the rotation below).
 MEASURED_WEIGHTS = {"moving": (0.67, 0.05), "still": (0.90, 0.025)}
 
 
@@ -96,11 +96,11 @@ def test_head_rotation_reaches_the_target(moving):
 
 # Measured on the neutral face turning up to 30 deg: the largest weight 0.50 (eyeLookIn_L, the
 # gaze; 0.50 too onto the ICT head as the avatar: the iris model's reading of these eyes slides
-# more with the turn than an ICT head's, 0.30), the keys the eyes do not read 0.30
-# (browOuterUp_L; 0.31 before stop 39). Before the RBF's smoothing was in the actor's units (core.retarget
-# map_blendshapes: this avatar is in metres) 0.72 (eyeWide_R); before each eyeLook pair's sum
-# was held to the gaze's size (core.eyes) 1.00, eyeLookOut_R and eyeLookIn_R together. Checked
-# with a margin.
+# more with the turn than an ICT head's, 0.30), the keys the eyes do not read 0.30 (browOuterUp_L;
+# 0.31 before stop 39). Before the RBF's smoothing was in the actor's units (core.retarget
+# map_blendshapes: this avatar is in metres) 0.72 (eyeWide_R); before each eyeLook pair's sum was
+# held to the gaze's size (core.eyes) 1.00, eyeLookOut_R and eyeLookIn_R together. Checked with a
+# margin.
 MEASURED_FALSE_WEIGHT = {"": 0.54, "eye": 0.54, "others": 0.34}
 
 

@@ -1,14 +1,14 @@
 """What the face's own image says of its expression (docs/method.md §12).
 
 FaceMesh's points follow the frowns, brows, pucker and cheeks by a few pixels at most, about its
-own jitter; the shading and the painted edges of the face move plainly. So each frame the face
-is frontalised: a fixed grid over the tracker model's mean face seen from the front, each grid
-pixel taken from the image where the actor's calibrated neutral, posed as tracked, puts it (a
-piecewise-affine warp over the points' Delaunay triangles). The expression moves the face within
-that grid; the head's turn does not move it. It is read twice, each over the face's median
-brightness: its shading (the grid averaged over 2x2 pixels) and its edges (histograms of the
-gradients' directions over cells of the grid, HOG: a light falling differently on a turned face
-changes them less than the shading, and an edge moving within a cell changes them as a shade
+own jitter; the shading and the painted edges of the face move plainly. So each frame the face is
+frontalised: a fixed grid over the tracker model's mean face seen from the front, each grid pixel
+taken from the image, smoothed at the grid's scale, where the actor's calibrated neutral, posed as
+tracked, puts it (a piecewise-affine warp over the points' Delaunay triangles). The expression
+moves the face within that grid; the head's turn does not move it. It is read twice, each over the
+face's median brightness: its shading (the grid averaged over 2x2 pixels) and its edges (histograms
+of the gradients' directions over cells of the grid, HOG: a light falling differently on a turned
+face changes them less than the shading, and an edge moving within a cell changes them as a shade
 does not). Less the mean over the calibration frames (the actor's own neutral face), both are read
 by a linear map learnt at build time from rendered takes of ICT identities
 (scripts/make_appearance_model.py) into the library's keys the eyes do not read. Beside the image
