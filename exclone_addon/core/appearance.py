@@ -150,6 +150,41 @@ class FaceFrontaliser:
         return reading
 
 
+@dataclass(frozen=True)
+class NeutralReading:
+    """The actor's neutral face's reading (FEATURES,) as the head turns: a line in the turn's
+    pitch and yaw (camera axes, radians from the calibrated pose) through the calibration
+    frames' readings. A face lit from one side, or shaped unlike the map's training heads, reads
+    differently turned even at rest; the calibration sees how, for this actor under this light.
+    The turn is held within what the calibration saw: a line through a second's turning is not
+    trusted beyond it (extrapolated, the moving take read 0.943 against 0.952)."""
+    mean: np.ndarray           # (FEATURES,) at the calibration's mean turn
+    slope: np.ndarray          # (2, FEATURES) per radian of pitch and yaw
+    mean_turn: np.ndarray      # (2,)
+    least_turn: np.ndarray     # (2,) the calibration's range
+    most_turn: np.ndarray
+    reference: Rotation        # the calibrated pose (model -> camera)
+
+    @classmethod
+    def fitted(cls, readings, rotations, reference):
+        """From the calibration frames' readings (F, FEATURES) and their head poses (a Rotation
+        of F); a turn the frames do not vary along gets no slope."""
+        turns = cls._turns(rotations, reference)
+        mean_turn = turns.mean(axis=0)
+        mean = readings.mean(axis=0)
+        slope = np.linalg.lstsq(turns - mean_turn, readings - mean, rcond=None)[0]
+        return cls(mean, slope, mean_turn, turns.min(axis=0), turns.max(axis=0), reference)
+
+    @staticmethod
+    def _turns(rotations, reference):
+        return np.atleast_2d((rotations * reference.inv()).as_rotvec())[:, :2]
+
+    def at(self, rotation):
+        """(FEATURES,) the neutral's reading with the head posed `rotation`."""
+        turn = np.clip(self._turns(rotation, self.reference)[0], self.least_turn, self.most_turn)
+        return self.mean + (turn - self.mean_turn) @ self.slope
+
+
 def turn_between(neutral, rotation):
     """The angle (deg) between the face's front in two head poses (model -> camera), the
     actor's calibrated `neutral` and `rotation`; a roll about the front does not count."""

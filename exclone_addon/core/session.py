@@ -25,7 +25,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from . import data, eyes, face_models, threads
-from .appearance import MOTION_SHARE, FaceFrontaliser, load_appearance_map, turn_between
+from .appearance import (MOTION_SHARE, FaceFrontaliser, NeutralReading, load_appearance_map,
+                         turn_between)
 from .eyes import EyeGeometry
 from .errors import ExCloneError
 from .material_points import MaterialPoints
@@ -201,7 +202,7 @@ class FaceTrackingSession:
         self._appearance = appearance
         self._appearance_map = None
         self._read_by_name = []       # (a key among the other keys, the map's columns): named alike
-        self._neutral_reading = None  # the mean reading of the calibration frames
+        self._neutral_reading = None  # the calibration frames' reading (NeutralReading)
         self.expression_reading = None   # this frame's reading less it (None: not read)
         # this frame's points' expression: the fit's shape less the actor's neutral (468, 3;
         # None before calibration)
@@ -503,8 +504,9 @@ class FaceTrackingSession:
             stage_ms["weights"] = 1000 * (time.perf_counter() - start)
         if gray is not None and self._neutral_reading is not None:
             start = time.perf_counter()
-            self.expression_reading = self._frontaliser.reading(
-                gray, self._posed_neutral(pose.rotation, pose.translation)) - self._neutral_reading
+            self.expression_reading = (self._frontaliser.reading(
+                gray, self._posed_neutral(pose.rotation, pose.translation))
+                - self._neutral_reading.at(pose.rotation))
             if self._appearance_map is not None:
                 read = self._appearance_map.weights(self.expression_reading,
                                                     self.expression_displacement,
@@ -658,14 +660,18 @@ class FaceTrackingSession:
                     self._read_by_name = self._appearance_map.keys_by_name(names)
 
     def _calibrate_appearance(self, fits):
-        """The neutral face's reading: the mean of the calibration frames' (none unless every
-        frame was an image), each frontalised by its own fitted pose."""
+        """The neutral face's reading as the head turns (appearance.NeutralReading) from the
+        calibration frames' (none unless every frame was an image), each frontalised by its own
+        fitted pose."""
         self._neutral_reading = None
         if self._calibration_faces and len(self._calibration_faces) == len(fits):
-            self._neutral_reading = np.mean([self._frontaliser.reading(
-                crop, self._posed_neutral(self._tracker_model.unbiased_rotation(fit),
-                                          fit.translation) - corner)
-                for (crop, corner), fit in zip(self._calibration_faces, fits)], axis=0)
+            rotations = [self._tracker_model.unbiased_rotation(fit) for fit in fits]
+            readings = np.array([self._frontaliser.reading(
+                crop, self._posed_neutral(rotation, fit.translation) - corner)
+                for (crop, corner), fit, rotation in zip(self._calibration_faces, fits,
+                                                         rotations)])
+            self._neutral_reading = NeutralReading.fitted(
+                readings, Rotation.concatenate(rotations), self.neutral_rotation)
 
     def _calibrate_eyes(self, fits):
         """The eyes' neutral: the median of the calibration frames' readings, each brought
