@@ -9,12 +9,13 @@ moves the face within that grid; the head's turn does not move it. It is read tw
 face's median brightness: its shading (the grid averaged over 2x2 pixels) and its edges (histograms
 of the gradients' directions over cells of the grid, HOG: a light falling differently on a turned
 face changes them less than the shading, and an edge moving within a cell changes them as a shade
-does not). Less the mean over the calibration frames (the actor's own neutral face), both are read
-by a linear map learnt at build time from rendered takes of ICT identities
-(scripts/make_appearance_model.py) into the library's keys the eyes do not read. Beside the image
-the map reads the same keys' weights as the points' expression gives them (solved against the keys'
-motion at the tracker's points): what the points do see well (an open jaw, a smile) tells the map
-what the image's change is not (a jaw's opening pulls the mouth's corners down as a frown does).
+does not). Less the actor's own neutral face's reading (NeutralReading: a line in the head's turn
+through the calibration frames'), both are read by a linear map learnt at build time from rendered
+takes of ICT identities (scripts/make_appearance_model.py) into the library's keys the eyes do not
+read. Beside the image the map reads the same keys' weights as the points' expression gives them
+(solved against the keys' motion at the tracker's points): what the points do see well (an open
+jaw, a smile) tells the map what the image's change is not (a jaw's opening pulls the mouth's
+corners down as a frown does).
 
 A linear map learnt by ridge regression reads each key at a fraction of its weight and leaks
 some of the others' into it (on frames it was not learnt from, a frown at 0.15-0.16 of its

@@ -625,12 +625,12 @@ class FaceTrackingSession:
         neutral, fitter, fits = calibrate_neutral(generic, frames)
         self.neutral = neutral
         self._fitter = fitter
-        self.neutral_rotation = Rotation.concatenate(
-            [self._tracker_model.unbiased_rotation(f) for f in fits]).mean()
+        rotations = Rotation.concatenate([self._tracker_model.unbiased_rotation(f) for f in fits])
+        self.neutral_rotation = rotations.mean()
         self._previous_fit, self._fit_before = fits[-1], None
         self._material = None if self._gray is None else MaterialPoints(self._gray, fits[-1], fitter)
         self._calibrate_eyes(fits)
-        self._calibrate_appearance(fits)
+        self._calibrate_appearance(fits, rotations)
         self._pending = 0
         self._calibration_points = []
         self._calibration_eyes = []
@@ -659,19 +659,18 @@ class FaceTrackingSession:
                 if self._appearance_map is not None:
                     self._read_by_name = self._appearance_map.keys_by_name(names)
 
-    def _calibrate_appearance(self, fits):
+    def _calibrate_appearance(self, fits, rotations):
         """The neutral face's reading as the head turns (appearance.NeutralReading) from the
         calibration frames' (none unless every frame was an image), each frontalised by its own
-        fitted pose."""
+        fitted pose (rotations: the fits' unbiased turns, a Rotation of them)."""
         self._neutral_reading = None
         if self._calibration_faces and len(self._calibration_faces) == len(fits):
-            rotations = [self._tracker_model.unbiased_rotation(fit) for fit in fits]
             readings = np.array([self._frontaliser.reading(
                 crop, self._posed_neutral(rotation, fit.translation) - corner)
                 for (crop, corner), fit, rotation in zip(self._calibration_faces, fits,
                                                          rotations)])
-            self._neutral_reading = NeutralReading.fitted(
-                readings, Rotation.concatenate(rotations), self.neutral_rotation)
+            self._neutral_reading = NeutralReading.fitted(readings, rotations,
+                                                          self.neutral_rotation)
 
     def _calibrate_eyes(self, fits):
         """The eyes' neutral: the median of the calibration frames' readings, each brought
