@@ -37,15 +37,20 @@ def _ramp_image(affine, size=(640, 480)):
     return (RAMP_LEVEL + grid @ RAMP_SLOPE).astype(np.float32)
 
 
+def _ramp_on_the_grid(frontaliser):
+    """(the ramp's value at each grid pixel, which grid pixels lie on the face), (height, width)."""
+    rows, columns = np.mgrid[0:FRONTAL_SIZE[1], 0:FRONTAL_SIZE[0]]
+    expected = RAMP_LEVEL + RAMP_SLOPE[0] * columns + RAMP_SLOPE[1] * rows
+    return expected, frontaliser.inside.reshape(FRONTAL_SIZE[1], FRONTAL_SIZE[0])
+
+
 def test_a_face_made_by_an_affine_map_comes_back_onto_the_grid():
     mean = load_tracker_model().shape_model.mean
     frontaliser = FaceFrontaliser(mean)
     affine = np.array([[2.1, 0.3, 180.0], [-0.25, 2.0, 120.0]])   # turned, scaled, moved
     image_points = frontaliser.grid_points @ affine[:, :2].T + affine[:, 2]
     frontal = frontaliser.frontal(_ramp_image(affine), image_points)
-    rows, columns = np.mgrid[0:FRONTAL_SIZE[1], 0:FRONTAL_SIZE[0]]
-    expected = RAMP_LEVEL + RAMP_SLOPE[0] * columns + RAMP_SLOPE[1] * rows
-    inside = frontaliser.inside.reshape(FRONTAL_SIZE[1], FRONTAL_SIZE[0])
+    expected, inside = _ramp_on_the_grid(frontaliser)
     assert inside.mean() > 0.6
     assert np.abs(frontal - expected)[inside].max() < 0.05
 
@@ -232,9 +237,7 @@ def _noisy_grid_error(affine, noise, rng):
     image_points = frontaliser.grid_points @ affine[:, :2].T + affine[:, 2]
     image = _ramp_image(affine) + rng.normal(0.0, noise, (480, 640)).astype(np.float32)
     frontal = frontaliser.frontal(image, image_points)
-    rows, columns = np.mgrid[0:FRONTAL_SIZE[1], 0:FRONTAL_SIZE[0]]
-    expected = RAMP_LEVEL + RAMP_SLOPE[0] * columns + RAMP_SLOPE[1] * rows
-    inside = frontaliser.inside.reshape(FRONTAL_SIZE[1], FRONTAL_SIZE[0])
+    expected, inside = _ramp_on_the_grid(frontaliser)
     return float(np.std((frontal - expected)[inside]))
 
 
