@@ -1,4 +1,4 @@
-"""Write exclone_addon/data/appearance_model.npz, what the live session reads expressions from
+"""Write exclone_addon/data/appearance_map.npz, what the live session reads expressions from
 besides the points (core.appearance, docs/method.md §12):
 
 1. takes of ICT identities (none the tests' rendered takes use, none the tracker model learnt
@@ -6,7 +6,7 @@ besides the points (core.appearance, docs/method.md §12):
    random library expressions (1-2 keys at 0.3-1 rising and falling, neutral spells, the eyes
    blinking and looking about on their own) with the head turning up to 30 / 20 / 12 deg, under
    Workbench's studio lights, skin tinted; rendered in background Blender at 640x480 (about
-   0.35 CPU s a frame, cached in --work);
+   0.15 CPU s a frame, cached in --work);
 2. each take tracked by core.session.FaceTrackingSession as a camera's frames are, and each
    frame's face read as the session reads it (core.appearance: the face frontalised by the
    tracked pose, less the take's calibrated neutral face), beside the keys' weights its points'
@@ -33,6 +33,7 @@ import sys
 import time
 from dataclasses import replace
 from concurrent.futures import ProcessPoolExecutor
+from itertools import repeat
 from multiprocessing import get_context
 from pathlib import Path
 
@@ -295,11 +296,12 @@ def held_out_turn_ridge(read, errors):
     return min(scores, key=scores.get), scores
 
 
-def held_out_share(paths, truths, changes, points, weights, keys, names, motion, choice, read,
-                   identities_file):
+def held_out_share(pool, paths, truths, changes, points, weights, keys, names, motion, choice,
+                   read, identities_file):
     """The share (SHARES) whose weights correlate best with the truth, averaged over the keys
     the map reads that move, on the first fold's takes tracked onto their own
-    heads, and each share's score (lists by take: frame paths, true weights (T, E), and the
+    heads (in `pool`'s processes), and each share's score (lists by take: frame paths, true
+    weights (T, E), and the
     calibrated frames' readings, points' weights, the map's keys' weights and their held-out
     reads (held_out_weights'); keys: the map's; choice: the map's components, ridge and
     un-mixing's penalties by turn)."""
@@ -314,13 +316,16 @@ def held_out_share(paths, truths, changes, points, weights, keys, names, motion,
     learned = replace(learned, unmixing_turns=unmixing_turns, unmixing_ridges=unmixing_ridges,
                       response=appearance.learn_response([read[k] for k in learnt],
                                                          [weights[k] for k in learnt]))
+    runs = [(k, share) for k in left for share in SHARES]
+    avatars = {k: AvatarRig.from_locations(
+        identity_vertices(library, TRAINING_IDENTITIES[k], identities_file), library.deltas,
+        names, locations) for k in left}
+    reads = pool.map(read_take, [paths[k] for k, _ in runs], repeat(None),
+                     [avatars[k] for k, _ in runs],
+                     [replace(learned, share=share) for _, share in runs])
     tracked = {share: [] for share in SHARES}
-    for k in left:
-        head = identity_vertices(library, TRAINING_IDENTITIES[k], identities_file)
-        avatar = AvatarRig.from_locations(head, library.deltas, names, locations)
-        for share in SHARES:
-            tracked[share].append(read_take(paths[k], avatar=avatar,
-                                            appearance_map=replace(learned, share=share))[2])
+    for (_, share), taken in zip(runs, reads):
+        tracked[share].append(taken[2])
     truth = np.vstack([truths[k] for k in left])[:, keys]
     scores = {}
     for share, taken in tracked.items():
@@ -333,21 +338,26 @@ def held_out_share(paths, truths, changes, points, weights, keys, names, motion,
 def main():
     parser = training_parser(__doc__, "exclone_appearance_training",
                              "where the training takes' frames are cached")
-    parser.add_argument("--jobs", type=int, default=2, help="takes rendered at once")
+    parser.add_argument("--jobs", type=int, default=2, help="takes rendered or read at once")
     args = parser.parse_args()
     require_identities(args.identities, "make_appearance_model")
     if args.jobs < 1:
         sys.exit(f"make_appearance_model: --jobs must be at least 1, got {args.jobs}")
     # each take in its own process: Blender's scene is one per process
     with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
-        takes = list(pool.map(render_take, [args.work] * len(TRAINING_IDENTITIES),
-                              TRAINING_IDENTITIES, [args.identities] * len(TRAINING_IDENTITIES)))
+        learn(pool, list(pool.map(render_take, repeat(args.work), TRAINING_IDENTITIES,
+                                  repeat(args.identities))), args.identities)
+
+
+def learn(pool, takes, identities_file):
+    """Learns the map from the takes' frames (paths by take of TRAINING_IDENTITIES), reading
+    them in `pool`'s processes, and writes it."""
     names = list(load_library().names)
     motion = load_tracker_model().expressions
     keys = [j for j, name in enumerate(names)
             if not name.startswith(EYE_KEY_PREFIX) and np.abs(motion[j]).max() >= MOVES_CM]
     solver = appearance.points_solver([names[j] for j in keys], motion[keys])
-    tracked = [read_take(paths, solver) for paths in takes]
+    tracked = list(pool.map(read_take, takes, repeat(solver)))
     recipes = [take_recipe(identity, names) for identity in TRAINING_IDENTITIES]
     seen = [np.all(np.isfinite(readings), axis=1) for readings, *_ in tracked]
     changes = [readings[ok] for (readings, *_), ok in zip(tracked, seen)]
@@ -379,9 +389,9 @@ def main():
     print("make_appearance_model: held-out median turn error (deg) by the turn bias's ridge: " +
           ", ".join(f"{r}: {score:.3f}" for r, score in turn_scores.items()), flush=True)
     truths = [recipe[0] for recipe in recipes]
-    share, share_scores = held_out_share(takes, truths, changes, points, weights, keys, names,
-                                         motion, (components, ridge, unmixing), raw,
-                                         args.identities)
+    share, share_scores = held_out_share(pool, takes, truths, changes, points, weights, keys,
+                                         names, motion, (components, ridge, unmixing), raw,
+                                         identities_file)
     print("make_appearance_model: held-out correlation by the appearance's share: " +
           ", ".join(f"{s}: {score:.3f}" for s, score in share_scores.items()), flush=True)
     learned = appearance.learn_appearance_map(np.vstack(changes), np.vstack(points),
