@@ -409,6 +409,9 @@ class IrisLandmarker:
 
     def __init__(self, models_dir=data.MODELS_DIR):
         self.net = _load_net(IRIS_MODEL, models_dir)
+        # OpenCV's fusion of its layers makes this network slower, not faster (a batch of two
+        # eyes 4.69 -> 4.34 ms without it on one thread, the outputs identical)
+        self.net.enableFusion(False)
         self.output_names = self.net.getUnconnectedOutLayersNames()
 
     def _crop_matrices(self, landmarks):
