@@ -299,9 +299,8 @@ def held_out_turn_ridge(read, errors):
 def held_out_share(pool, paths, truths, changes, points, weights, keys, names, motion, choice,
                    read, identities_file):
     """The share (SHARES) whose weights correlate best with the truth, averaged over the keys
-    the map reads that move, on the first fold's takes tracked onto their own
-    heads (in `pool`'s processes), and each share's score (lists by take: frame paths, true
-    weights (T, E), and the
+    the map reads that move, on the first fold's takes tracked onto their own heads (in `pool`'s
+    processes), and each share's score (lists by take: frame paths, true weights (T, E), and the
     calibrated frames' readings, points' weights, the map's keys' weights and their held-out
     reads (held_out_weights'); keys: the map's; choice: the map's components, ridge and
     un-mixing's penalties by turn)."""
